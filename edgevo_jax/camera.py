@@ -1,0 +1,97 @@
+"""Pinhole camera with inverse-depth back-projection, and undistortion maps.
+
+Conventions (DESIGN.md): pixels (u, v) = (column, row) with the origin at the centre of the
+top-left pixel; rho = 1 / z.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import cv2
+import jax.numpy as jnp
+import numpy as np
+
+
+class Intrinsics(NamedTuple):
+    """Pinhole intrinsics in pixels (a JAX pytree, being a NamedTuple)."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    def at_level(self, level: int) -> Intrinsics:
+        """Intrinsics of pyramid level ``level`` (each level halves the image).
+
+        With the pixel-centre origin, u_l = (u_0 + 0.5) / 2**l - 0.5.
+        """
+        s = 0.5**level
+        return Intrinsics(
+            self.fx * s, self.fy * s, (self.cx + 0.5) * s - 0.5, (self.cy + 0.5) * s - 0.5
+        )
+
+    def matrix(self) -> np.ndarray:
+        """3x3 camera matrix K (numpy, float64)."""
+        return np.array(
+            [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]], np.float64
+        )
+
+    def validate(self) -> Intrinsics:
+        """Raise ValueError unless every value is finite and the focal lengths positive."""
+        vals = np.asarray(self, np.float64)
+        if not np.all(np.isfinite(vals)):
+            raise ValueError(f"intrinsics must be finite, got {self}")
+        if self.fx <= 0 or self.fy <= 0:
+            raise ValueError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        return self
+
+
+def unproject(intr: Intrinsics, uv: jnp.ndarray, rho: jnp.ndarray) -> jnp.ndarray:
+    """Back-project pixels with inverse depth: pi^-1(p, rho) = ((u-cx)/fx, (v-cy)/fy, 1) / rho.
+
+    uv: (..., 2) pixels; rho: (...,) inverse depth in 1/m. Returns (..., 3) points in metres.
+    """
+    x = (uv[..., 0] - intr.cx) / intr.fx
+    y = (uv[..., 1] - intr.cy) / intr.fy
+    return jnp.stack([x, y, jnp.ones_like(x)], axis=-1) / rho[..., None]
+
+
+def project(intr: Intrinsics, pts: jnp.ndarray) -> jnp.ndarray:
+    """Project camera-frame points (..., 3) to pixels (..., 2): pi(P) = (fx X/Z + cx, fy Y/Z + cy).
+
+    Points at or behind the camera give non-finite-free but meaningless pixels: callers mask
+    them with ``pts[..., 2] > 0``.
+    """
+    z = pts[..., 2]
+    safe_z = jnp.where(z > 1e-6, z, 1.0)
+    u = intr.fx * pts[..., 0] / safe_z + intr.cx
+    v = intr.fy * pts[..., 1] / safe_z + intr.cy
+    return jnp.stack([u, v], axis=-1)
+
+
+def project_jacobian(intr: Intrinsics, pts: jnp.ndarray) -> jnp.ndarray:
+    """d pi / d P at camera-frame points (..., 3): (..., 2, 3).
+
+    [[fx/Z, 0, -fx X/Z^2], [0, fy/Z, -fy Y/Z^2]].
+    """
+    z = jnp.where(pts[..., 2] > 1e-6, pts[..., 2], 1.0)
+    iz = 1.0 / z
+    zero = jnp.zeros_like(iz)
+    row_u = jnp.stack([intr.fx * iz, zero, -intr.fx * pts[..., 0] * iz * iz], axis=-1)
+    row_v = jnp.stack([zero, intr.fy * iz, -intr.fy * pts[..., 1] * iz * iz], axis=-1)
+    return jnp.stack([row_u, row_v], axis=-2)
+
+
+def undistortion_maps(
+    intr: Intrinsics, dist: tuple[float, ...], width: int, height: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """cv2.remap maps that undistort a raw image onto the same pinhole intrinsics.
+
+    dist: OpenCV order (k1, k2, p1, p2, k3). Use with INTER_LINEAR for colour and
+    INTER_NEAREST for depth (depth must not be blended across discontinuities).
+    """
+    return cv2.initUndistortRectifyMap(
+        intr.matrix(), np.asarray(dist, np.float64), None, intr.matrix(), (width, height),
+        cv2.CV_32FC1,
+    )

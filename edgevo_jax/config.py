@@ -1,0 +1,104 @@
+"""The frozen configuration of a run: every static choice of the method in one place.
+
+Defaults and where they come from (EdgeVO: Zhao, Shang, Liu, Chen, Gu; DSO for the keyframe
+weights the paper adopts):
+- Canny on a 5x5, sigma 1 Gaussian-blurred gray image with L2 Sobel magnitude, thresholds
+  50 / 100 (Canny's 1:2 ratio). The magnitude used for culling and for the re-observation
+  sigmoid is that same Sobel L2 magnitude, so ``canny_high`` is the paper's ``a``.
+- 3 pyramid levels (paper); residual gate and Huber radius in pixels of each level.
+- Gradient-consistency threshold eta = 0.6 (paper).
+- Keyframe rule w1 * t + w2 * t' > 1 with t, t' the RMS optical flow in pixels (with and
+  without rotation) and w1 = 1/50, w2 = 1/25 px^-1: DSO's 0.02 / 0.04 weights, i.e. a new keyframe
+  after ~50 px of general or ~25 px of translational flow; correspondences under 30 % of their
+  running average; 1 s since the last keyframe (paper).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, fields
+
+
+@dataclass(frozen=True)
+class Config:
+    """Static configuration (hashable: it is a jit static argument)."""
+
+    # --- preprocessing (host, OpenCV) ---
+    blur_ksize: int = 5
+    blur_sigma: float = 1.0
+    canny_low: float = 50.0
+    canny_high: float = 100.0
+    min_depth: float = 0.1  # metres; depth outside [min_depth, max_depth] counts as missing
+    max_depth: float = 8.0
+    # --- tracking (device) ---
+    max_edges: int = 4096  # fixed number of keyframe edge slots (padded, with a validity mask)
+    iterations: tuple[int, ...] = (10, 10, 10)  # Gauss-Newton iterations at level 0, 1, 2
+    huber_delta: tuple[float, ...] = (1.0, 1.0, 1.0)  # pixels of each level
+    max_residual: tuple[float, ...] = (5.0, 5.0, 5.0)  # residual gate, pixels of each level
+    eta: float = 0.6  # gradient consistency: reject g(p) . g(p') < eta
+    step_tol: float = 1e-5  # stop a level once the update's norm is below this
+    min_inliers: int = 30  # fewer level-0 inliers than this: tracking lost
+    # --- keyframes (host) ---
+    kf_flow_weight: float = 0.02  # w1, on RMS flow (px)
+    kf_flow_t_weight: float = 0.04  # w2, on RMS flow without rotation (px)
+    kf_min_inlier_ratio: float = 0.3
+    kf_max_interval_s: float = 1.0
+    # --- determinism ---
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        n = self.num_levels
+        for name in ("huber_delta", "max_residual"):
+            if len(getattr(self, name)) != n:
+                raise ValueError(f"Config.{name} needs one value per level ({n})")
+        if self.canny_low > self.canny_high:
+            raise ValueError("Config.canny_low must not exceed canny_high")
+        if self.max_edges < 1:
+            raise ValueError("Config.max_edges must be positive")
+        if not 0.0 < self.min_depth < self.max_depth:
+            raise ValueError("Config needs 0 < min_depth < max_depth")
+
+    @property
+    def num_levels(self) -> int:
+        """Number of pyramid levels (level 0 = full resolution)."""
+        return len(self.iterations)
+
+    def replace(self, **changes: object) -> Config:
+        """A copy with some fields changed."""
+        return dataclasses.replace(self, **changes)
+
+    def with_overrides(self, items: list[str]) -> Config:
+        """Apply ``key=value`` strings (the CLI's ``--set``), parsed by each field's type."""
+        known = {f.name: f for f in fields(self)}
+        changes: dict[str, object] = {}
+        for item in items:
+            if "=" not in item:
+                raise ValueError(f"--set expects key=value, got {item!r}")
+            key, raw = (s.strip() for s in item.split("=", 1))
+            if key not in known:
+                raise ValueError(f"unknown config key {key!r}; known: {', '.join(sorted(known))}")
+            current = getattr(self, key)
+            try:
+                changes[key] = _parse_like(current, raw)
+            except ValueError as err:
+                raise ValueError(f"--set {key}={raw}: {err}") from None
+        return self.replace(**changes)
+
+
+def _parse_like(current: object, raw: str) -> object:
+    if isinstance(current, bool):
+        low = raw.lower()
+        if low in ("1", "true", "yes", "on"):
+            return True
+        if low in ("0", "false", "no", "off"):
+            return False
+        raise ValueError(f"expected a boolean, got {raw!r}")
+    if isinstance(current, tuple):
+        parts = [p for p in raw.replace("(", "").replace(")", "").split(",") if p.strip()]
+        kind = type(current[0]) if current else float
+        return tuple(kind(p) for p in parts)
+    if isinstance(current, int):
+        return int(raw)
+    if isinstance(current, float):
+        return float(raw)
+    return raw

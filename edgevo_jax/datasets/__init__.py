@@ -1,0 +1,23 @@
+"""Dataset readers (host side)."""
+
+from __future__ import annotations
+
+from edgevo_jax.datasets.tum import (
+    FREIBURG_CAMERAS,
+    FROM_NAME,
+    TumSequence,
+    camera_from_name,
+    groundtruth_pose_at,
+    load_sequence,
+    read_file_list,
+)
+
+__all__ = [
+    "FREIBURG_CAMERAS",
+    "FROM_NAME",
+    "TumSequence",
+    "camera_from_name",
+    "groundtruth_pose_at",
+    "load_sequence",
+    "read_file_list",
+]

@@ -1,0 +1,294 @@
+"""TUM RGB-D benchmark sequences (host side: numpy + OpenCV).
+
+Layout: ``rgb.txt``, ``depth.txt`` (``timestamp filename`` lines), ``rgb/``, ``depth/`` and an
+optional ``groundtruth.txt`` (``timestamp tx ty tz qx qy qz qw``, T_world_cam). Depth PNGs are
+16-bit with ``value / depth_factor`` metres (5000 in the benchmark) and 0 for no measurement.
+"""
+
+from __future__ import annotations
+
+import enum
+import functools
+import math
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from edgevo_jax.camera import Intrinsics, undistortion_maps
+from edgevo_jax.io import read_trajectory
+from edgevo_jax.metrics import associate_timestamps
+
+__all__ = [
+    "FREIBURG_CAMERAS",
+    "FROM_NAME",
+    "TumSequence",
+    "camera_from_name",
+    "groundtruth_pose_at",
+    "load_sequence",
+    "read_file_list",
+]
+
+Distortion = tuple[float, ...]
+
+#: Factory calibration of the three benchmark cameras: intrinsics and OpenCV distortion
+#: (k1, k2, p1, p2, k3); None where the images are already undistorted (freiburg3).
+FREIBURG_CAMERAS: dict[str, tuple[Intrinsics, Distortion | None]] = {
+    "freiburg1": (
+        Intrinsics(517.3, 516.5, 318.6, 255.3),
+        (0.2624, -0.9531, -0.0054, 0.0026, 1.1633),
+    ),
+    "freiburg2": (
+        Intrinsics(520.9, 521.0, 325.1, 249.7),
+        (0.2312, -0.7849, -0.0033, -0.0001, 0.9172),
+    ),
+    "freiburg3": (Intrinsics(535.4, 539.2, 320.1, 247.6), None),
+}
+
+_CAMERA_RE = re.compile(r"freiburg([123])|(?<![a-z0-9])fr([123])(?![a-z0-9])")
+
+
+class _FromName(enum.Enum):
+    FROM_NAME = "from the folder name"
+
+
+#: Default of ``load_sequence(distortion=...)``: take the distortion from the folder name.
+FROM_NAME = _FromName.FROM_NAME
+
+
+def read_file_list(path: str | os.PathLike[str]) -> tuple[np.ndarray, list[str]]:
+    """Read a TUM list (``rgb.txt``/``depth.txt``): timestamps (N,) and the rest of each line.
+
+    Skips blank lines and '#' comments; commas and tabs count as spaces (as ``associate.py``).
+    Raises FileNotFoundError naming the file, ValueError naming ``path:line`` for a line without
+    a finite timestamp and a filename, and ValueError if timestamps are not strictly increasing.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"file list not found: {p}")
+    stamps: list[float] = []
+    rest: list[str] = []
+    linenos: list[int] = []
+    with p.open("r", encoding="utf-8", errors="replace") as f:
+        for lineno, raw in enumerate(f, start=1):
+            line = raw.strip()
+            if not line or line.startswith("#"):
+                continue
+            fields = line.replace(",", " ").replace("\t", " ").split()
+            if len(fields) < 2:
+                raise ValueError(f"{p}:{lineno}: expected 'timestamp filename', got {line!r}")
+            try:
+                t = float(fields[0])
+            except ValueError as exc:
+                raise ValueError(f"{p}:{lineno}: bad timestamp {fields[0]!r}") from exc
+            if not math.isfinite(t):
+                raise ValueError(f"{p}:{lineno}: non-finite timestamp {fields[0]!r}")
+            if stamps and t <= stamps[-1]:
+                raise ValueError(
+                    f"{p}:{lineno}: timestamps must be strictly increasing, {fields[0]} follows "
+                    f"{stamps[-1]:.6f} (line {linenos[-1]})"
+                )
+            stamps.append(t)
+            rest.append(" ".join(fields[1:]))
+            linenos.append(lineno)
+    return np.asarray(stamps, np.float64), rest
+
+
+def camera_from_name(name: str) -> tuple[Intrinsics, Distortion | None]:
+    """Calibration of the Freiburg camera named in a folder name (``freiburgN`` or ``frN``).
+
+    Returns (intrinsics, distortion or None). ValueError if no (or more than one) camera is
+    named, asking for explicit intrinsics.
+    """
+    found = {a or b for a, b in _CAMERA_RE.findall(name.lower())}
+    if len(found) != 1:
+        what = "no Freiburg camera" if not found else f"several cameras ({sorted(found)})"
+        raise ValueError(
+            f"cannot tell the camera from the name {name!r}: {what} named "
+            "(expected 'freiburg1/2/3' or 'fr1/2/3'); pass intrinsics= (and distortion=) "
+            "explicitly"
+        )
+    return FREIBURG_CAMERAS[f"freiburg{found.pop()}"]
+
+
+@functools.lru_cache(maxsize=8)
+def _cached_maps(
+    intr: Intrinsics, dist: Distortion, width: int, height: int
+) -> tuple[np.ndarray, np.ndarray]:
+    map1, map2 = undistortion_maps(intr, dist, width, height)
+    map1.setflags(write=False)
+    map2.setflags(write=False)
+    return map1, map2
+
+
+def _read_image(path: Path, flags: int, what: str) -> np.ndarray:
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} image not found: {path}")
+    buf = np.fromfile(path, np.uint8)
+    img = cv2.imdecode(buf, flags) if buf.size else None
+    if img is None:
+        raise ValueError(f"cannot decode {what} image {path} (corrupt or truncated file?)")
+    return img
+
+
+def _describe(img: np.ndarray) -> str:
+    bits = {np.dtype(np.uint8): "8-bit", np.dtype(np.uint16): "16-bit"}.get(
+        img.dtype, f"dtype {img.dtype}"
+    )
+    channels = 1 if img.ndim == 2 else img.shape[2]
+    return f"{bits}, {channels} channel{'s' if channels != 1 else ''}"
+
+
+@dataclass(frozen=True, eq=False)
+class TumSequence:
+    """An associated TUM RGB-D sequence (use :func:`load_sequence`).
+
+    ``timestamps`` are the rgb timestamps of the associated rgb/depth pairs; ``groundtruth``
+    is (timestamps, poses7) or None. Equality is identity (fields hold arrays).
+    """
+
+    root: Path
+    name: str
+    intrinsics: Intrinsics
+    distortion: Distortion | None
+    depth_factor: float
+    timestamps: np.ndarray
+    rgb_files: tuple[Path, ...]
+    depth_files: tuple[Path, ...]
+    groundtruth: tuple[np.ndarray, np.ndarray] | None
+    width: int
+    height: int
+
+    def __len__(self) -> int:
+        return len(self.rgb_files)
+
+    def _maps(self) -> tuple[np.ndarray, np.ndarray] | None:
+        if self.distortion is None:
+            return None
+        return _cached_maps(self.intrinsics, tuple(self.distortion), self.width, self.height)
+
+    def load_frame(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """Frame i: rgb uint8 (H, W, 3) in RGB order and depth float32 metres (H, W), 0 = none.
+
+        Undistorted onto the same pinhole intrinsics when ``distortion`` is set (rgb bilinear,
+        depth nearest-neighbour so no depth values are blended).
+        """
+        n = len(self)
+        if not -n <= i < n:
+            raise IndexError(f"frame {i} out of range for {self.name} ({n} frames)")
+        rgb_path, depth_path = self.rgb_files[i], self.depth_files[i]
+        bgr = _read_image(rgb_path, cv2.IMREAD_COLOR, "rgb")
+        raw = _read_image(depth_path, cv2.IMREAD_UNCHANGED, "depth")
+        if raw.ndim != 2 or raw.dtype != np.uint16:
+            raise ValueError(
+                f"depth image {depth_path} must be single-channel 16-bit, got {_describe(raw)}"
+            )
+        if bgr.shape[:2] != raw.shape:
+            raise ValueError(
+                f"rgb {rgb_path} is {bgr.shape[1]}x{bgr.shape[0]} but depth {depth_path} is "
+                f"{raw.shape[1]}x{raw.shape[0]} (width x height)"
+            )
+        if raw.shape != (self.height, self.width):
+            raise ValueError(
+                f"frame {rgb_path} is {raw.shape[1]}x{raw.shape[0]}, the sequence is "
+                f"{self.width}x{self.height} (width x height)"
+            )
+        rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+        maps = self._maps()
+        if maps is not None:
+            rgb = cv2.remap(rgb, maps[0], maps[1], cv2.INTER_LINEAR,
+                            borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            raw = cv2.remap(raw, maps[0], maps[1], cv2.INTER_NEAREST,
+                            borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        depth = raw.astype(np.float32) / np.float32(self.depth_factor)
+        return rgb, depth
+
+
+def load_sequence(
+    path: str | os.PathLike[str],
+    *,
+    intrinsics: Intrinsics | None = None,
+    distortion: Distortion | _FromName | None = FROM_NAME,
+    depth_factor: float = 5000.0,
+    max_diff: float = 0.02,
+) -> TumSequence:
+    """Load a TUM RGB-D sequence folder, associating rgb and depth like ``associate.py``.
+
+    Intrinsics come from the folder name (``camera_from_name``) unless given. ``distortion``
+    defaults to the folder name's camera, or to None when ``intrinsics`` are given. Ground
+    truth is read when ``groundtruth.txt`` exists. Raises FileNotFoundError for a missing
+    folder or list and ValueError when no rgb/depth pair associates within ``max_diff``.
+    """
+    root = Path(path)
+    if not root.is_dir():
+        raise FileNotFoundError(f"TUM sequence folder not found: {root}")
+    for fname in ("rgb.txt", "depth.txt"):
+        if not (root / fname).is_file():
+            raise FileNotFoundError(f"{fname} not found in TUM sequence folder {root}")
+    if not (math.isfinite(depth_factor) and depth_factor > 0):
+        raise ValueError(f"depth_factor must be positive and finite, got {depth_factor}")
+    name = Path(os.path.abspath(root)).name  # normalise '.'/'..' but keep symlink names
+    if intrinsics is None:
+        intr, name_dist = camera_from_name(name)
+        dist = name_dist if distortion is FROM_NAME else distortion
+    else:
+        intr = Intrinsics(*(float(v) for v in intrinsics)).validate()
+        dist = None if distortion is FROM_NAME else distortion
+    if dist is not None:
+        dist = tuple(float(v) for v in dist)  # type: ignore[union-attr]
+        if len(dist) not in (4, 5, 8, 12, 14) or not all(math.isfinite(v) for v in dist):
+            raise ValueError(
+                f"distortion must be 4, 5, 8, 12 or 14 finite OpenCV coefficients, got {dist}"
+            )
+
+    rgb_t, rgb_rel = read_file_list(root / "rgb.txt")
+    depth_t, depth_rel = read_file_list(root / "depth.txt")
+    pairs = associate_timestamps(rgb_t, depth_t, max_diff)
+    if pairs.shape[0] == 0:
+        raise ValueError(
+            f"no rgb/depth pair of {root} associates within {max_diff} s "
+            f"({rgb_t.size} rgb, {depth_t.size} depth timestamps)"
+        )
+    rgb_files = tuple(root / rgb_rel[i] for i in pairs[:, 0])
+    depth_files = tuple(root / depth_rel[j] for j in pairs[:, 1])
+    gt_path = root / "groundtruth.txt"
+    groundtruth = read_trajectory(gt_path) if gt_path.is_file() else None
+    first = _read_image(rgb_files[0], cv2.IMREAD_COLOR, "rgb")
+    return TumSequence(
+        root=root,
+        name=name,
+        intrinsics=intr,
+        distortion=dist,
+        depth_factor=float(depth_factor),
+        timestamps=rgb_t[pairs[:, 0]],
+        rgb_files=rgb_files,
+        depth_files=depth_files,
+        groundtruth=groundtruth,
+        width=int(first.shape[1]),
+        height=int(first.shape[0]),
+    )
+
+
+def groundtruth_pose_at(
+    seq: TumSequence, t: float, max_diff: float | None = None
+) -> np.ndarray | None:
+    """Ground-truth pose7 nearest in time to ``t``; None without ground truth, or when the
+    nearest one is more than ``max_diff`` seconds away (if given)."""
+    if not math.isfinite(t):
+        raise ValueError(f"timestamp must be finite, got {t}")
+    if seq.groundtruth is None or seq.groundtruth[0].size == 0:
+        return None
+    gt_t, gt_p = seq.groundtruth
+    order = np.argsort(gt_t, kind="stable")
+    ts = gt_t[order]
+    k = int(np.clip(np.searchsorted(ts, t), 1, max(ts.size - 1, 1)))
+    if ts.size == 1:
+        k = 0
+    elif abs(ts[k - 1] - t) <= abs(ts[k] - t):
+        k -= 1
+    if max_diff is not None and abs(ts[k] - t) > max_diff:
+        return None
+    return gt_p[order[k]].copy()

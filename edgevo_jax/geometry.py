@@ -1,0 +1,48 @@
+"""SE(3) helpers on top of jaxlie. Twists are [v, w] (translation first), as in jaxlie.
+
+``T_a_b`` maps points from frame b to frame a. Host-side 4x4 helpers use numpy float64.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import jaxlie
+import numpy as np
+
+
+def se3_from_matrix(T: jnp.ndarray) -> jaxlie.SE3:
+    """jaxlie SE3 from a 4x4 homogeneous matrix."""
+    return jaxlie.SE3.from_matrix(jnp.asarray(T))
+
+
+def retract_left(T: jaxlie.SE3, xi: jnp.ndarray) -> jaxlie.SE3:
+    """Left-multiplicative update exp(xi) * T, xi = [v, w] (6,)."""
+    return jaxlie.SE3.exp(xi) @ T
+
+
+def transform_points(T: jaxlie.SE3, pts: jnp.ndarray) -> jnp.ndarray:
+    """R @ p + t for points (K, 3)."""
+    R = T.rotation().as_matrix()
+    # elementwise rather than a (K, 3) x (3, 3) dot: XLA on CPU fuses it with its neighbours
+    return jnp.sum(pts[..., None, :] * R, axis=-1) + T.translation()
+
+
+def skew(w: jnp.ndarray) -> jnp.ndarray:
+    """The 3x3 cross-product matrix [w]x of a 3-vector."""
+    z = jnp.zeros((), w.dtype)
+    return jnp.array([[z, -w[2], w[1]], [w[2], z, -w[0]], [-w[1], w[0], z]])
+
+
+def inverse_np(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform (numpy)."""
+    R, t = T[:3, :3], T[:3, 3]
+    out = np.eye(4)
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ t
+    return out
+
+
+def rotation_angle_np(T: np.ndarray) -> float:
+    """Rotation angle (rad) of a 4x4 rigid transform."""
+    c = (np.trace(T[:3, :3]) - 1.0) / 2.0
+    return float(np.arccos(np.clip(c, -1.0, 1.0)))

@@ -1,0 +1,117 @@
+"""Host-side preprocessing of one RGB-D frame (numpy + OpenCV) into fixed-shape arrays.
+
+gray -> Gaussian blur -> Canny; Sobel gradients (their L2 magnitude is the one Canny
+thresholds); level-0 Euclidean distance field to the nearest edge (OpenCV's 5x5 chamfer
+approximation, computed in the same pass as the nearest-edge labels), plus the normalised
+gradient of that nearest edge at every pixel; levels 1..L-1 by linear downscaling of level 0
+with distances rescaled to the level's pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .config import Config
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One pre-processed frame. Pixels are (u, v) = (column, row).
+
+    edge_uv (N, 2) float32 pixels of the Canny edges; edge_grad (N, 2) their normalised
+    image gradient; edge_mag (N,) Sobel L2 magnitude; edge_depth (N,) metres (0 = missing);
+    dist: one float32 distance field per level, (H / 2**l, W / 2**l), in that level's pixels;
+    nearest_grad (H, W, 2) int8: normalised gradient of the nearest edge to each pixel,
+    times 127 (the quantisation error, 1/127, is far below the consistency gate eta).
+    """
+
+    edge_uv: np.ndarray
+    edge_grad: np.ndarray
+    edge_mag: np.ndarray
+    edge_depth: np.ndarray
+    dist: tuple[np.ndarray, ...]
+    nearest_grad: np.ndarray
+
+    @property
+    def num_edges(self) -> int:
+        """Number of Canny edge pixels."""
+        return int(self.edge_uv.shape[0])
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(H, W) of level 0."""
+        return self.dist[0].shape
+
+
+def to_gray(rgb: np.ndarray) -> np.ndarray:
+    """uint8 gray image from an RGB (H, W, 3) or gray (H, W) uint8 image."""
+    if rgb.ndim == 2:
+        return rgb
+    return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+
+
+def detect_edges(gray: np.ndarray, config: Config) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Canny edge mask (uint8, 255 on edges) and Sobel gradients gx, gy (float32)."""
+    k = config.blur_ksize
+    blurred = cv2.GaussianBlur(gray, (k, k), config.blur_sigma) if k > 1 else gray
+    edges = cv2.Canny(blurred, config.canny_low, config.canny_high, L2gradient=True)
+    gx = cv2.Sobel(blurred, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(blurred, cv2.CV_32F, 0, 1, ksize=3)
+    return edges, gx, gy
+
+
+def distance_pyramid(level0: np.ndarray, num_levels: int) -> tuple[np.ndarray, ...]:
+    """Levels 1.. by halving with linear interpolation; distances divided by 2 per level."""
+    levels = [level0]
+    for _ in range(1, num_levels):
+        prev = levels[-1]
+        h, w = prev.shape
+        levels.append(cv2.resize(prev, (w // 2, h // 2), interpolation=cv2.INTER_LINEAR) * 0.5)
+    return tuple(levels)
+
+
+def nearest_edge_map(grad: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """Per pixel, the int8-quantised normalised gradient (H, W, 2) of the edge that
+    ``labels`` (1-based, 0 = none) names; both components are packed into one int16 so the
+    gather is a single pass."""
+    q = np.clip(np.round(grad * 127.0), -127, 127).astype(np.int8)
+    packed = np.concatenate([np.zeros(1, np.int16), q.view(np.int16).ravel()])
+    return np.take(packed, labels).view(np.int8).reshape(*labels.shape, 2)
+
+
+def preprocess(rgb: np.ndarray, depth: np.ndarray, config: Config) -> Frame:
+    """Turn an RGB (H, W, 3) uint8 image and a depth map (H, W) in metres into a Frame."""
+    gray = to_gray(rgb)
+    edges, gx, gy = detect_edges(gray, config)
+    h, w = gray.shape
+    pts = cv2.findNonZero(edges)  # raster order: the order distanceTransform labels them
+    pts = np.zeros((0, 2), np.int32) if pts is None else pts.reshape(-1, 2)
+    us, vs = pts[:, 0], pts[:, 1]
+    flat = vs * w + us
+    egx, egy = np.take(gx.ravel(), flat), np.take(gy.ravel(), flat)
+    mag = np.hypot(egx, egy)
+    grad = np.stack([egx, egy], axis=-1) / np.maximum(mag, 1e-6)[:, None]
+    if us.size:
+        not_edge = cv2.bitwise_not(edges)
+        # One pass gives both: a 5x5 chamfer L2 distance (within 0.08 px of the exact one
+        # inside the 5 px residual gate on TUM frames) and the nearest edge pixel per pixel.
+        dist0, labels = cv2.distanceTransformWithLabels(
+            not_edge, cv2.DIST_L2, cv2.DIST_MASK_5, labelType=cv2.DIST_LABEL_PIXEL
+        )
+        nearest_grad = nearest_edge_map(grad, labels)
+    else:  # no edge at all: every distance is "far"; the tracker reports the frame lost
+        dist0 = np.full((h, w), float(h + w), np.float32)
+        nearest_grad = np.zeros((h, w, 2), np.int8)
+    d = np.take(depth.ravel(), flat).astype(np.float32)
+    d = np.where(np.isfinite(d) & (d >= config.min_depth) & (d <= config.max_depth), d, 0.0)
+    return Frame(
+        edge_uv=np.stack([us, vs], axis=-1).astype(np.float32),
+        edge_grad=grad.astype(np.float32),
+        edge_mag=mag.astype(np.float32),
+        edge_depth=d.astype(np.float32),
+        dist=distance_pyramid(dist0, config.num_levels),
+        nearest_grad=nearest_grad,
+    )
