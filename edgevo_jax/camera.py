@@ -1,7 +1,8 @@
 """Pinhole camera with inverse-depth back-projection, and undistortion maps.
 
 Conventions (DESIGN.md): pixels (u, v) = (column, row) with the origin at the centre of the
-top-left pixel; rho = 1 / z.
+top-left pixel; rho = 1 / z. Device-side arrays of many points are struct-of-arrays, (3, K)
+points and (2, K) pixels: XLA on CPU vectorises over the last axis.
 """
 
 from __future__ import annotations
@@ -50,37 +51,20 @@ class Intrinsics(NamedTuple):
 def unproject(intr: Intrinsics, uv: jnp.ndarray, rho: jnp.ndarray) -> jnp.ndarray:
     """Back-project pixels with inverse depth: pi^-1(p, rho) = ((u-cx)/fx, (v-cy)/fy, 1) / rho.
 
-    uv: (..., 2) pixels; rho: (...,) inverse depth in 1/m. Returns (..., 3) points in metres.
+    uv: (2, K) pixels; rho: (K,) inverse depth in 1/m. Returns (3, K) points in metres.
     """
-    x = (uv[..., 0] - intr.cx) / intr.fx
-    y = (uv[..., 1] - intr.cy) / intr.fy
-    return jnp.stack([x, y, jnp.ones_like(x)], axis=-1) / rho[..., None]
+    z = 1.0 / rho
+    return jnp.stack([(uv[0] - intr.cx) / intr.fx * z, (uv[1] - intr.cy) / intr.fy * z, z])
 
 
 def project(intr: Intrinsics, pts: jnp.ndarray) -> jnp.ndarray:
-    """Project camera-frame points (..., 3) to pixels (..., 2): pi(P) = (fx X/Z + cx, fy Y/Z + cy).
+    """Project camera-frame points (3, K) to pixels (2, K): (fx X/Z + cx, fy Y/Z + cy).
 
-    Points at or behind the camera give non-finite-free but meaningless pixels: callers mask
-    them with ``pts[..., 2] > 0``.
+    Points at or behind the camera (Z <= 1e-6) give finite but meaningless pixels: callers
+    mask them with ``pts[2] > 1e-6``.
     """
-    z = pts[..., 2]
-    safe_z = jnp.where(z > 1e-6, z, 1.0)
-    u = intr.fx * pts[..., 0] / safe_z + intr.cx
-    v = intr.fy * pts[..., 1] / safe_z + intr.cy
-    return jnp.stack([u, v], axis=-1)
-
-
-def project_jacobian(intr: Intrinsics, pts: jnp.ndarray) -> jnp.ndarray:
-    """d pi / d P at camera-frame points (..., 3): (..., 2, 3).
-
-    [[fx/Z, 0, -fx X/Z^2], [0, fy/Z, -fy Y/Z^2]].
-    """
-    z = jnp.where(pts[..., 2] > 1e-6, pts[..., 2], 1.0)
-    iz = 1.0 / z
-    zero = jnp.zeros_like(iz)
-    row_u = jnp.stack([intr.fx * iz, zero, -intr.fx * pts[..., 0] * iz * iz], axis=-1)
-    row_v = jnp.stack([zero, intr.fy * iz, -intr.fy * pts[..., 1] * iz * iz], axis=-1)
-    return jnp.stack([row_u, row_v], axis=-2)
+    iz = 1.0 / jnp.where(pts[2] > 1e-6, pts[2], 1.0)
+    return jnp.stack([intr.fx * pts[0] * iz + intr.cx, intr.fy * pts[1] * iz + intr.cy])
 
 
 def undistortion_maps(

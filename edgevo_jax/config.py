@@ -31,7 +31,7 @@ class Config:
     min_depth: float = 0.1  # metres; depth outside [min_depth, max_depth] counts as missing
     max_depth: float = 8.0
     # --- tracking (device) ---
-    max_edges: int = 4096  # fixed number of keyframe edge slots (padded, with a validity mask)
+    max_edges: int = 2048  # keyframe edge slots (padded, validity mask); see the module doc
     iterations: tuple[int, ...] = (10, 10, 10)  # Gauss-Newton iterations at level 0, 1, 2
     huber_delta: tuple[float, ...] = (1.0, 1.0, 1.0)  # pixels of each level
     max_residual: tuple[float, ...] = (5.0, 5.0, 5.0)  # residual gate, pixels of each level

@@ -21,10 +21,10 @@ def retract_left(T: jaxlie.SE3, xi: jnp.ndarray) -> jaxlie.SE3:
 
 
 def transform_points(T: jaxlie.SE3, pts: jnp.ndarray) -> jnp.ndarray:
-    """R @ p + t for points (K, 3)."""
-    R = T.rotation().as_matrix()
-    # elementwise rather than a (K, 3) x (3, 3) dot: XLA on CPU fuses it with its neighbours
-    return jnp.sum(pts[..., None, :] * R, axis=-1) + T.translation()
+    """R @ p + t for points (3, K) (struct of arrays)."""
+    R, t = T.rotation().as_matrix(), T.translation()
+    x, y, z = pts[0], pts[1], pts[2]
+    return jnp.stack([R[i, 0] * x + R[i, 1] * y + R[i, 2] * z + t[i] for i in range(3)])
 
 
 def skew(w: jnp.ndarray) -> jnp.ndarray:

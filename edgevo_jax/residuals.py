@@ -1,7 +1,11 @@
 """Warp, distance residual, its analytic Jacobian, and the gradient-consistency mask.
 
-r_i(xi) = D_c(pi(exp(xi) T pi^-1(p_i, rho_i)))  (EdgeVO, distance-field residual)
-dr/dxi at xi = 0 = grad D(u') . d pi / dP (P') . [I | -[P']x]   with P' = T pi^-1(p_i, rho_i).
+Keyframe edges enter as 3D points P = pi^-1(p, rho) (3, K) in the keyframe (computed once
+per alignment: each pyramid level only changes the intrinsics).
+
+r_i(xi) = D_c(pi(exp(xi) T P_i))  (EdgeVO, distance-field residual)
+dr/dxi at xi = 0 = grad D(u') . d pi / dP (P') . [I | -[P']x]   with P' = T P_i,
+twist xi = [v, w], left perturbation.
 """
 
 from __future__ import annotations
@@ -10,56 +14,62 @@ import jax
 import jax.numpy as jnp
 import jaxlie
 
-from .camera import Intrinsics, project, project_jacobian, unproject
+from .camera import Intrinsics, project
 from .geometry import retract_left, transform_points
 from .interp import bilinear, bilinear_with_grad, nearest
 
 
 def warp(
-    intr: Intrinsics, T_c_k: jaxlie.SE3, uv: jnp.ndarray, rho: jnp.ndarray
+    intr: Intrinsics, T_c_k: jaxlie.SE3, pts_k: jnp.ndarray
 ) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """w(rho, p, xi): keyframe pixels uv (K, 2) with inverse depth rho (K,) into the current
-    frame; returns the warped pixels (K, 2) and the points P' (K, 3) in the current camera."""
-    pts = transform_points(T_c_k, unproject(intr, uv, rho))
+    """w(rho, p, xi): keyframe points (3, K) into the current camera; returns the warped
+    pixels (2, K) and the points P' (3, K) in the current camera frame."""
+    pts = transform_points(T_c_k, pts_k)
     return project(intr, pts), pts
 
 
 def residual(
-    field: jnp.ndarray, intr: Intrinsics, T_c_k: jaxlie.SE3, uv: jnp.ndarray, rho: jnp.ndarray
+    field: jnp.ndarray, intr: Intrinsics, T_c_k: jaxlie.SE3, pts_k: jnp.ndarray
 ) -> tuple[jnp.ndarray, jnp.ndarray]:
     """Distance residuals r (K,) and validity (in front of the camera and inside the field)."""
-    uv_c, pts = warp(intr, T_c_k, uv, rho)
+    uv_c, pts = warp(intr, T_c_k, pts_k)
     r, inside = bilinear(field, uv_c)
-    return r, inside & (pts[:, 2] > 1e-6)
+    return r, inside & (pts[2] > 1e-6)
 
 
 def residual_and_jacobian(
-    field: jnp.ndarray, intr: Intrinsics, T_c_k: jaxlie.SE3, uv: jnp.ndarray, rho: jnp.ndarray
+    field: jnp.ndarray, intr: Intrinsics, T_c_k: jaxlie.SE3, pts_k: jnp.ndarray
 ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray]:
-    """Residuals (K,), analytic Jacobian w.r.t. a left twist [v, w] (K, 6), validity (K,)
-    and warped pixels (K, 2)."""
-    uv_c, pts = warp(intr, T_c_k, uv, rho)
+    """Residuals (K,), analytic Jacobian w.r.t. a left twist [v, w] (6, K), validity (K,)
+    and warped pixels (2, K)."""
+    uv_c, pts = warp(intr, T_c_k, pts_k)
     r, grad, inside = bilinear_with_grad(field, uv_c)
-    a = jnp.sum(grad[..., :, None] * project_jacobian(intr, pts), axis=-2)  # dD/dP' (K, 3)
-    jac = jnp.concatenate([a, jnp.cross(pts, a)], axis=-1)  # a.(w x P') = w.(P' x a)
-    return r, jac, inside & (pts[:, 2] > 1e-6), uv_c
+    x, y, z = pts[0], pts[1], pts[2]
+    iz = 1.0 / jnp.where(z > 1e-6, z, 1.0)
+    ax = grad[0] * intr.fx * iz  # a = dD/dP' = grad D . d pi/dP
+    ay = grad[1] * intr.fy * iz
+    az = -(ax * x + ay * y) * iz
+    # a . (w x P') = w . (P' x a)
+    jac = jnp.stack([ax, ay, az, y * az - z * ay, z * ax - x * az, x * ay - y * ax])
+    return r, jac, inside & (z > 1e-6), uv_c
 
 
 def residual_jacobian_autodiff(
-    field: jnp.ndarray, intr: Intrinsics, T_c_k: jaxlie.SE3, uv: jnp.ndarray, rho: jnp.ndarray
+    field: jnp.ndarray, intr: Intrinsics, T_c_k: jaxlie.SE3, pts_k: jnp.ndarray
 ) -> jnp.ndarray:
-    """The same Jacobian (K, 6) by forward-mode autodiff of r(exp(xi) T) at xi = 0."""
+    """The same Jacobian (6, K) by forward-mode autodiff of r(exp(xi) T) at xi = 0."""
 
     def r_of(xi: jnp.ndarray) -> jnp.ndarray:
-        return residual(field, intr, retract_left(T_c_k, xi), uv, rho)[0]
+        return residual(field, intr, retract_left(T_c_k, xi), pts_k)[0]
 
-    return jax.jacfwd(r_of)(jnp.zeros(6, uv.dtype))
+    return jax.jacfwd(r_of)(jnp.zeros(6, pts_k.dtype)).T
 
 
 def gradient_consistent(
     grad_k: jnp.ndarray, nearest_grad: jnp.ndarray, uv0: jnp.ndarray, eta: float
 ) -> jnp.ndarray:
-    """g(p) . g(p') >= eta, with p' the nearest edge to the warped level-0 pixel uv0 (K, 2);
-    nearest_grad (H, W, 2) holds g(p') * 127 as int8 (see preprocess.nearest_edge_map)."""
+    """g(p) . g(p') >= eta, with g(p) (2, K) the keyframe edges' normalised gradients and p'
+    the nearest edge to the warped level-0 pixels uv0 (2, K); nearest_grad (H, W, 2) holds
+    g(p') * 127 as int8 (see preprocess.nearest_edge_map)."""
     g_near = nearest(nearest_grad, uv0).astype(grad_k.dtype) * (1.0 / 127.0)
-    return jnp.sum(grad_k * g_near, axis=-1) >= eta
+    return jnp.sum(grad_k * g_near, axis=0) >= eta

@@ -27,13 +27,13 @@ def pack_edges(frame: Frame, idx: np.ndarray, size: int, seed: int) -> KeyframeE
     if idx.size > size:
         idx = np.sort(np.random.default_rng(seed).choice(idx, size, replace=False))
     n = idx.size
-    uv = np.zeros((size, 2), np.float32)
+    uv = np.zeros((2, size), np.float32)
     rho = np.ones(size, np.float32)
-    grad = np.zeros((size, 2), np.float32)
+    grad = np.zeros((2, size), np.float32)
     valid = np.zeros(size, bool)
-    uv[:n] = frame.edge_uv[idx]
+    uv[:, :n] = frame.edge_uv[idx].T
     rho[:n] = 1.0 / frame.edge_depth[idx]
-    grad[:n] = frame.edge_grad[idx]
+    grad[:, :n] = frame.edge_grad[idx].T
     valid[:n] = True
     return KeyframeEdges(uv=uv, rho=rho, grad=grad, valid=valid)
 

@@ -46,6 +46,18 @@ class FrameResult:
     total_ms: float
 
 
+@dataclass(frozen=True)
+class _Pending:
+    """A frame whose solve has been dispatched (asynchronously) but not read back yet."""
+
+    frame: Frame
+    timestamp: float
+    predicted: np.ndarray
+    output: object  # TrackResult of device arrays, or None for the first frame
+    preprocess_ms: float
+    t_submit: float
+
+
 @dataclass
 class _Keyframe:
     timestamp: float
@@ -61,6 +73,9 @@ class Odometry:
     >>> result = odo.track(rgb, depth_m, timestamp)  # doctest: +SKIP
 
     ``initial_pose`` (4, 4) is T_world_cam of the first frame (identity by default).
+    ``track`` is synchronous. ``submit`` + ``complete`` split it: ``submit`` dispatches the
+    device solve and returns at once, so the caller can prepare the next frame on another
+    core before ``complete`` reads the result back (one frame in flight at a time).
     """
 
     def __init__(
@@ -75,6 +90,7 @@ class Odometry:
         self._kf: _Keyframe | None = None
         self._poses: list[np.ndarray] = []  # the last two T_world_cam, for constant velocity
         self._last_t: float | None = None
+        self._in_flight = False
         self.num_keyframes = 0
 
     # -- public -------------------------------------------------------------------------
@@ -82,37 +98,48 @@ class Odometry:
         """Track one frame: rgb (H, W, 3) uint8, depth (H, W) in metres (0 = missing)."""
         t0 = time.perf_counter()
         frame = preprocess(rgb, depth, self.config)
-        return self.track_frame(frame, timestamp, preprocess_ms=(time.perf_counter() - t0) * 1e3)
+        pre_ms = (time.perf_counter() - t0) * 1e3
+        return self.complete(self.submit(frame, timestamp, preprocess_ms=pre_ms))
 
-    def track_frame(self, frame: Frame, timestamp: float, *, preprocess_ms: float = 0.0
-                    ) -> FrameResult:
-        """Track one pre-processed frame (``preprocess_ms`` is only reported back)."""
-        t_pre = time.perf_counter()
-        t0 = t_pre - preprocess_ms * 1e-3
+    def track_frame(self, frame: Frame, timestamp: float) -> FrameResult:
+        """Track one pre-processed frame (synchronous)."""
+        return self.complete(self.submit(frame, timestamp))
+
+    def submit(self, frame: Frame, timestamp: float, *, preprocess_ms: float = 0.0) -> _Pending:
+        """Dispatch the solve of one pre-processed frame; read it back with ``complete``."""
+        if self._in_flight:
+            raise RuntimeError("complete() the frame in flight before submitting another")
         timestamp = float(timestamp)
         if self._last_t is not None and timestamp <= self._last_t:
             raise ValueError(
                 f"timestamp {timestamp:.6f} does not increase (last was {self._last_t:.6f})"
             )
+        t_submit = time.perf_counter()
         self._last_t = timestamp
+        self._in_flight = True
         if self._kf is None:
-            kf_reason = self._make_keyframe(frame, timestamp, self._initial)
-            self._push(self._initial)
-            if kf_reason is None:
-                return self._result(timestamp, self._initial, LOST, "no edges with depth",
-                                    0, None, None, t0, t_pre, t_pre)
-            return self._result(timestamp, self._initial, OK, None, 0, None, "first",
-                                t0, t_pre, t_pre)
-
-        kf = self._kf
+            return _Pending(frame, timestamp, self._initial, None, preprocess_ms, t_submit)
         predicted = self._predict()
-        T_init = inverse_np(predicted) @ kf.pose  # T_cur_kf
-        dist = tuple(jnp.asarray(d) for d in frame.dist)
-        res = jax.device_get(
-            _track_jit(kf.edges, dist, jnp.asarray(frame.nearest_grad),
-                       jnp.asarray(T_init, jnp.float32), self.intrinsics, config=self.config)
+        T_init = inverse_np(predicted) @ self._kf.pose  # T_cur_kf
+        output = _track_jit(
+            self._kf.edges, frame.dist, frame.nearest_grad, T_init.astype(np.float32),
+            self.intrinsics, config=self.config,
         )
+        return _Pending(frame, timestamp, predicted, output, preprocess_ms, t_submit)
+
+    def complete(self, pending: _Pending) -> FrameResult:
+        """Wait for a submitted frame, decide its state and keyframe, and return its result."""
+        self._in_flight = False
+        frame, timestamp = pending.frame, pending.timestamp
+        if pending.output is None:  # first frame (or no usable keyframe yet)
+            made = self._make_keyframe(frame, timestamp, pending.predicted)
+            self._push(pending.predicted)
+            state, reason = (OK, None) if made else (LOST, "no edges with depth")
+            return self._result(pending, pending.predicted, state, reason, 0, None,
+                                "first" if made else None, time.perf_counter())
+        res = jax.device_get(pending.output)
         t_solve = time.perf_counter()
+        kf = self._kf
         T_c_k = np.asarray(res.T_c_k, np.float64)
         inliers = int(res.inliers)
         lost = None
@@ -129,12 +156,12 @@ class Odometry:
             )
             kf.inlier_counts.append(inliers)
         else:
-            pose, reason = predicted, "lost"
+            pose, reason = pending.predicted, "lost"
         made = reason if reason and self._make_keyframe(frame, timestamp, pose) else None
         self._push(pose)
         cov = np.asarray(res.covariance, np.float64) if lost is None else None
-        return self._result(timestamp, pose, OK if lost is None else LOST, lost, inliers, cov,
-                            made, t0, t_pre, t_solve)
+        return self._result(pending, pose, OK if lost is None else LOST, lost, inliers, cov,
+                            made, t_solve)
 
     # -- internals ------------------------------------------------------------------------
     def _predict(self) -> np.ndarray:
@@ -147,20 +174,21 @@ class Odometry:
     def _push(self, pose: np.ndarray) -> None:
         self._poses = (self._poses + [pose])[-2:]
 
-    def _make_keyframe(self, frame: Frame, timestamp: float, pose: np.ndarray) -> str | None:
+    def _make_keyframe(self, frame: Frame, timestamp: float, pose: np.ndarray) -> bool:
         edges = keyframe_edges(frame, self.config, seed=self.config.seed + self.num_keyframes)
         if int(edges.valid.sum()) < self.config.min_inliers:
-            return None  # keep the old keyframe: this one would have nothing to track
+            return False  # keep the old keyframe: this one would have nothing to track
         self._kf = _Keyframe(timestamp, pose, KeyframeEdges(*(jnp.asarray(a) for a in edges)))
         self.num_keyframes += 1
-        return "made"
+        return True
 
-    def _result(self, timestamp, pose, state, reason, inliers, cov, kf, t0, t_pre, t_solve):
+    def _result(self, pending, pose, state, reason, inliers, cov, kf, t_solve) -> FrameResult:
         t_end = time.perf_counter()
+        solve_ms = (t_solve - pending.t_submit) * 1e3
         return FrameResult(
-            timestamp=timestamp, pose=pose, state=state, reason=reason, inliers=inliers,
-            covariance=cov, keyframe=kf, preprocess_ms=(t_pre - t0) * 1e3,
-            solve_ms=(t_solve - t_pre) * 1e3, total_ms=(t_end - t0) * 1e3,
+            timestamp=pending.timestamp, pose=pose, state=state, reason=reason, inliers=inliers,
+            covariance=cov, keyframe=kf, preprocess_ms=pending.preprocess_ms, solve_ms=solve_ms,
+            total_ms=pending.preprocess_ms + (t_end - pending.t_submit) * 1e3,
         )
 
 
@@ -170,4 +198,3 @@ def _orthonormalise(T: np.ndarray) -> np.ndarray:
     out = T.copy()
     out[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
     return out
-

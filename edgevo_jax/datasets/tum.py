@@ -176,6 +176,11 @@ class TumSequence:
         Undistorted onto the same pinhole intrinsics when ``distortion`` is set (rgb bilinear,
         depth nearest-neighbour so no depth values are blended).
         """
+        return self.rectify_frame(*self.decode_frame(i))
+
+    def decode_frame(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """Frame i as stored: rgb uint8 (H, W, 3) in RGB order and raw uint16 depth (H, W),
+        checked (file present and readable, 16-bit single-channel depth, matching sizes)."""
         n = len(self)
         if not -n <= i < n:
             raise IndexError(f"frame {i} out of range for {self.name} ({n} frames)")
@@ -196,7 +201,10 @@ class TumSequence:
                 f"frame {rgb_path} is {raw.shape[1]}x{raw.shape[0]}, the sequence is "
                 f"{self.width}x{self.height} (width x height)"
             )
-        rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), raw
+
+    def rectify_frame(self, rgb: np.ndarray, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Undistort a decoded frame (when ``distortion`` is set) and scale depth to metres."""
         maps = self._maps()
         if maps is not None:
             rgb = cv2.remap(rgb, maps[0], maps[1], cv2.INTER_LINEAR,
