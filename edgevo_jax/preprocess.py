@@ -84,9 +84,16 @@ def nearest_edge_map(grad: np.ndarray, labels: np.ndarray) -> np.ndarray:
 
 def preprocess(rgb: np.ndarray, depth: np.ndarray, config: Config) -> Frame:
     """Turn an RGB (H, W, 3) uint8 image and a depth map (H, W) in metres into a Frame."""
-    gray = to_gray(rgb)
-    edges, gx, gy = detect_edges(gray, config)
-    h, w = gray.shape
+    edges, gx, gy = detect_edges(to_gray(rgb), config)
+    return frame_from_edges(edges, gx, gy, depth, config)
+
+
+def frame_from_edges(
+    edges: np.ndarray, gx: np.ndarray, gy: np.ndarray, depth: np.ndarray, config: Config
+) -> Frame:
+    """A Frame from an edge mask (H, W) uint8 (non-zero on edges), image gradients gx, gy
+    (H, W) float32 (read at edge pixels only) and depth (H, W) in metres."""
+    h, w = edges.shape
     pts = cv2.findNonZero(edges)  # raster order: the order distanceTransform labels them
     pts = np.zeros((0, 2), np.int32) if pts is None else pts.reshape(-1, 2)
     us, vs = pts[:, 0], pts[:, 1]

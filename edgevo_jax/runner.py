@@ -4,8 +4,8 @@ progress bar and the run's statistics.
 Frame i is decoded, frame i-1 submitted to the device, frame i pre-processed on the host while
 that solve runs (JAX dispatch is asynchronous and OpenCV releases the GIL), then frame i-1
 completed. The solve overlaps preprocessing only, never decoding, so the reported per-frame
-time (decoding excluded) is what a live camera would see. Tracking results are identical to the synchronous
-``Odometry.track``: preprocessing does not depend on the tracking state.
+time (decoding excluded) is what a live camera would see. Tracking results are identical to
+the synchronous ``Odometry.track``: preprocessing does not depend on the tracking state.
 """
 
 from __future__ import annotations
