@@ -7,6 +7,13 @@ weights the paper adopts):
   sigmoid is that same Sobel L2 magnitude, so ``canny_high`` is the paper's ``a``.
 - 3 pyramid levels (paper); residual gate and Huber radius in pixels of each level.
 - Gradient-consistency threshold eta = 0.6 (paper).
+- Edge selection (paper, Algorithm 1): stochastic partition greedy, 512 edges per keyframe.
+  512 keeps the solve well under the preprocessing time it overlaps on a 2-core CPU;
+  ``scripts/ablation_selection.py`` sweeps it. The 4 px grid gives many more non-empty
+  partitions than the budget even on weakly textured frames, so the edge count is the budget,
+  not the texture, and the random partition order follows the edge density (coarser grids
+  force one edge into every textureless cell: worse on fr3_teddy, see the ablation).
+  lambda = 1 only regularises the first picks (one edge's information is ~ (f / Z)^2 ~ 1e5).
 - Keyframe rule w1 * t + w2 * t' > 1 with t, t' the RMS optical flow in pixels (with and
   without rotation) and w1 = 1/50, w2 = 1/25 px^-1: DSO's 0.02 / 0.04 weights, i.e. a new keyframe
   after ~50 px of general or ~25 px of translational flow; correspondences under 30 % of their
@@ -17,6 +24,8 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, fields
+
+SELECTIONS = ("spg", "all", "random", "greedy")
 
 
 @dataclass(frozen=True)
@@ -30,8 +39,15 @@ class Config:
     canny_high: float = 100.0
     min_depth: float = 0.1  # metres; depth outside [min_depth, max_depth] counts as missing
     max_depth: float = 8.0
+    # --- edge selection (see selection.py) ---
+    selection: str = "spg"  # spg | all | random | greedy
+    num_edges: int = 512  # edges tracked per keyframe with spg / random / greedy
+    cell_size: int = 4  # partition grid (pixels) for spg; see the module doc
+    max_per_cell: int = 16  # candidate slots per partition (a seeded subset beyond that)
+    logdet_lambda: float = 1.0  # lambda in logdet(H(S) + lambda I)
+    greedy_epsilon: float = 0.1  # stochastic greedy: samples (N / k) log(1 / eps) per step
+    max_edges: int = 16384  # edge slots with selection=all (holds every culled edge at 640x480)
     # --- tracking (device) ---
-    max_edges: int = 2048  # keyframe edge slots (padded, validity mask); see the module doc
     iterations: tuple[int, ...] = (10, 10, 10)  # Gauss-Newton iterations at level 0, 1, 2
     huber_delta: tuple[float, ...] = (1.0, 1.0, 1.0)  # pixels of each level
     max_residual: tuple[float, ...] = (5.0, 5.0, 5.0)  # residual gate, pixels of each level
@@ -53,10 +69,22 @@ class Config:
                 raise ValueError(f"Config.{name} needs one value per level ({n})")
         if self.canny_low > self.canny_high:
             raise ValueError("Config.canny_low must not exceed canny_high")
-        if self.max_edges < 1:
-            raise ValueError("Config.max_edges must be positive")
+        if self.selection not in SELECTIONS:
+            raise ValueError(
+                f"Config.selection must be one of {', '.join(SELECTIONS)}, got {self.selection!r}"
+            )
+        for name in ("max_edges", "num_edges", "cell_size", "max_per_cell"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"Config.{name} must be positive")
+        if self.logdet_lambda <= 0 or not 0 < self.greedy_epsilon < 1:
+            raise ValueError("Config needs logdet_lambda > 0 and 0 < greedy_epsilon < 1")
         if not 0.0 < self.min_depth < self.max_depth:
             raise ValueError("Config needs 0 < min_depth < max_depth")
+
+    @property
+    def edge_slots(self) -> int:
+        """Number of keyframe edge slots the tracker is compiled for."""
+        return self.max_edges if self.selection == "all" else self.num_edges
 
     @property
     def num_levels(self) -> int:

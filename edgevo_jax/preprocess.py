@@ -122,3 +122,4 @@ def frame_from_edges(
         dist=distance_pyramid(dist0, config.num_levels),
         nearest_grad=nearest_grad,
     )
+

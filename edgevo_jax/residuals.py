@@ -44,14 +44,19 @@ def residual_and_jacobian(
     and warped pixels (2, K)."""
     uv_c, pts = warp(intr, T_c_k, pts_k)
     r, grad, inside = bilinear_with_grad(field, uv_c)
+    return r, point_jacobian(intr, pts, grad), inside & (pts[2] > 1e-6), uv_c
+
+
+def point_jacobian(intr: Intrinsics, pts: jnp.ndarray, grad: jnp.ndarray) -> jnp.ndarray:
+    """d/dxi of f(pi(exp(xi) P')) at xi = 0 for a pixel-space gradient ``grad`` = df/du (2, K)
+    at points P' (3, K): grad . d pi/dP . [I | -[P']x], (6, K)."""
     x, y, z = pts[0], pts[1], pts[2]
     iz = 1.0 / jnp.where(z > 1e-6, z, 1.0)
-    ax = grad[0] * intr.fx * iz  # a = dD/dP' = grad D . d pi/dP
+    ax = grad[0] * intr.fx * iz  # a = df/dP' = grad . d pi/dP
     ay = grad[1] * intr.fy * iz
     az = -(ax * x + ay * y) * iz
     # a . (w x P') = w . (P' x a)
-    jac = jnp.stack([ax, ay, az, y * az - z * ay, z * ax - x * az, x * ay - y * ax])
-    return r, jac, inside & (z > 1e-6), uv_c
+    return jnp.stack([ax, ay, az, y * az - z * ay, z * ax - x * az, x * ay - y * ax])
 
 
 def residual_jacobian_autodiff(

@@ -10,6 +10,7 @@ the synchronous ``Odometry.track``: preprocessing does not depend on the trackin
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +38,7 @@ class RunResult:
     compile_s: float = float("nan")
     num_keyframes: int = 0
     stopped_at: int | None = None  # index of the first frame not processed, if interrupted
+    config: Config | None = None
 
     @property
     def timestamps(self) -> np.ndarray:
@@ -69,7 +71,7 @@ def run_sequence(
     line (flushed; renamed into place at the end). Returns the per-frame results."""
     odo = Odometry(config, seq.intrinsics, initial_pose(seq))
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
-    run = RunResult()
+    run = RunResult(config=config)
     writer = TrajectoryWriter(out) if out is not None else None
     bar = tqdm(total=n, desc=seq.name, unit="frame", disable=not progress, leave=False)
     ready = None  # (frame, timestamp, preprocess ms) decoded and pre-processed, not submitted
@@ -134,6 +136,10 @@ def summarise(run: RunResult, seq: TumSequence) -> dict:
         "preprocess_ms": _describe([r.preprocess_ms for r in run.results[2:]]),
         "solve_wait_ms": _describe([r.solve_ms for r in run.results[2:]]),
         "decode_ms": _describe(run.decode_ms[2:]),
+        "select_ms": _describe([r.select_ms for r in run.results if r.select_ms is not None]),
+        "edges_used_mean": float(np.mean([r.edges_used for r in run.results[1:]]))
+        if len(run.results) > 1 else float("nan"),
+        "config": dataclasses.asdict(run.config) if run.config is not None else None,
     }
     if run.stopped_at is not None:
         stats["stopped_at_frame"] = run.stopped_at

@@ -31,8 +31,9 @@ OK, LOST = "OK", "LOST"
 class FrameResult:
     """What tracking one frame gives: pose T_world_cam (4, 4, float64), tracking state
     (``OK`` / ``LOST``) and the reason when lost, covariance (6, 6) of a left twist [v, w]
-    of T_cur_kf, level-0 inliers, whether the frame became a keyframe (and why), and host
-    timings in ms (preprocess, solve = device call including transfer, total)."""
+    of T_cur_kf, level-0 inliers, whether the frame became a keyframe (and why), the number of
+    keyframe edges it was tracked with, the edge selection time when it became a keyframe,
+    and host timings in ms (preprocess; solve = from dispatch to read-back; total)."""
 
     timestamp: float
     pose: np.ndarray
@@ -41,6 +42,8 @@ class FrameResult:
     inliers: int
     covariance: np.ndarray | None
     keyframe: str | None
+    edges_used: int
+    select_ms: float | None
     preprocess_ms: float
     solve_ms: float
     total_ms: float
@@ -63,6 +66,7 @@ class _Keyframe:
     timestamp: float
     pose: np.ndarray  # T_world_kf
     edges: KeyframeEdges  # on device
+    num_edges: int
     inlier_counts: list[int] = field(default_factory=list)
 
 
@@ -132,11 +136,12 @@ class Odometry:
         self._in_flight = False
         frame, timestamp = pending.frame, pending.timestamp
         if pending.output is None:  # first frame (or no usable keyframe yet)
-            made = self._make_keyframe(frame, timestamp, pending.predicted)
+            select_ms = self._make_keyframe(frame, timestamp, pending.predicted)
             self._push(pending.predicted)
+            made = select_ms is not None
             state, reason = (OK, None) if made else (LOST, "no edges with depth")
             return self._result(pending, pending.predicted, state, reason, 0, None,
-                                "first" if made else None, time.perf_counter())
+                                "first" if made else None, 0, select_ms, time.perf_counter())
         res = jax.device_get(pending.output)
         t_solve = time.perf_counter()
         kf = self._kf
@@ -157,11 +162,13 @@ class Odometry:
             kf.inlier_counts.append(inliers)
         else:
             pose, reason = pending.predicted, "lost"
-        made = reason if reason and self._make_keyframe(frame, timestamp, pose) else None
+        used = kf.num_edges
+        select_ms = self._make_keyframe(frame, timestamp, pose) if reason else None
+        made = reason if select_ms is not None else None
         self._push(pose)
         cov = np.asarray(res.covariance, np.float64) if lost is None else None
         return self._result(pending, pose, OK if lost is None else LOST, lost, inliers, cov,
-                            made, t_solve)
+                            made, used, select_ms, t_solve)
 
     # -- internals ------------------------------------------------------------------------
     def _predict(self) -> np.ndarray:
@@ -174,20 +181,30 @@ class Odometry:
     def _push(self, pose: np.ndarray) -> None:
         self._poses = (self._poses + [pose])[-2:]
 
-    def _make_keyframe(self, frame: Frame, timestamp: float, pose: np.ndarray) -> bool:
-        edges = keyframe_edges(frame, self.config, seed=self.config.seed + self.num_keyframes)
-        if int(edges.valid.sum()) < self.config.min_inliers:
-            return False  # keep the old keyframe: this one would have nothing to track
-        self._kf = _Keyframe(timestamp, pose, KeyframeEdges(*(jnp.asarray(a) for a in edges)))
+    def _make_keyframe(self, frame: Frame, timestamp: float, pose: np.ndarray) -> float | None:
+        """Make the frame the keyframe; returns the edge selection time (ms), or None when it
+        has too few usable edges (the old keyframe stays)."""
+        t0 = time.perf_counter()
+        # prior motion for the selection: constant velocity, T_next_kf = T_w_kf^-1 T_w_prev
+        T_prior = inverse_np(pose) @ self._poses[-1] if self._poses else np.eye(4)
+        edges = keyframe_edges(frame, self.config, seed=self.config.seed + self.num_keyframes,
+                               T_prior=T_prior, intr=self.intrinsics)
+        n = int(edges.valid.sum())
+        if n < self.config.min_inliers:
+            return None
+        edges = KeyframeEdges(*(jnp.asarray(a) for a in edges))
+        self._kf = _Keyframe(timestamp, pose, edges, n)
         self.num_keyframes += 1
-        return True
+        return (time.perf_counter() - t0) * 1e3
 
-    def _result(self, pending, pose, state, reason, inliers, cov, kf, t_solve) -> FrameResult:
+    def _result(self, pending, pose, state, reason, inliers, cov, kf, used, select_ms,
+                t_solve) -> FrameResult:
         t_end = time.perf_counter()
         solve_ms = (t_solve - pending.t_submit) * 1e3
         return FrameResult(
             timestamp=pending.timestamp, pose=pose, state=state, reason=reason, inliers=inliers,
-            covariance=cov, keyframe=kf, preprocess_ms=pending.preprocess_ms, solve_ms=solve_ms,
+            covariance=cov, keyframe=kf, edges_used=used, select_ms=select_ms,
+            preprocess_ms=pending.preprocess_ms, solve_ms=solve_ms,
             total_ms=pending.preprocess_ms + (t_end - pending.t_submit) * 1e3,
         )
 

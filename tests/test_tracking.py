@@ -54,7 +54,8 @@ def test_known_motion_is_recovered_on_a_real_frame(bundled, twist):
     f0 = preprocess(rgb, depth, config)
     T_true = np.asarray(jaxlie.SE3.exp(jnp.asarray(twist)).as_matrix(), np.float64)
     f1 = warped_edge_frame(f0, T_true, bundled.intrinsics, config)
-    kf = KeyframeEdges(*(jnp.asarray(a) for a in keyframe_edges(f0, config, seed=0)))
+    edges = keyframe_edges(f0, config, seed=0, intr=bundled.intrinsics)
+    kf = KeyframeEdges(*(jnp.asarray(a) for a in edges))
     res = track(kf, tuple(map(jnp.asarray, f1.dist)), jnp.asarray(f1.nearest_grad),
                 jnp.eye(4, dtype=jnp.float32), bundled.intrinsics, config)
     err = np.linalg.inv(T_true) @ np.asarray(res.T_c_k, np.float64)

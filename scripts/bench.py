@@ -1,0 +1,683 @@
+"""Side-by-side benchmark of edgevo_jax and peer RGB-D odometry methods on TUM RGB-D clips.
+
+Usage::
+
+    python scripts/bench.py [SEQ_DIR ...] [--max-frames N] [--methods m1,m2,...]
+                            [--edgevo NAME=key=value;key=value ...]
+                            [--out-json bench.json] [--out-md bench.md]
+
+Methods:
+
+- ``edgevo`` (the default ``Config``) and any ``--edgevo`` variant, e.g.
+  ``--edgevo "edgevo_all=selection=all"``: ``edgevo_jax.runner.run_sequence`` (keyframe-based,
+  pipelined: the solve of frame i overlaps the preprocessing of frame i+1).
+- ``cv2_rgb``, ``cv2_depth``, ``cv2_rgbd``: OpenCV 5 ``cv2.Odometry`` with
+  ``OdometryType_RGB`` / ``_DEPTH`` / ``_RGB_DEPTH`` (``OdometryAlgoType_COMMON``, default
+  settings plus the sequence's camera matrix), frame to frame: one ``cv2.OdometryFrame``
+  (float32 depth in metres and, except for DEPTH, the gray image) per frame, then
+  ``prepareFrames(previous, current)`` and ``compute(previous, current)``.
+- ``o3d_color``, ``o3d_hybrid``: Open3D ``o3d.pipelines.odometry.compute_rgbd_odometry`` with
+  ``RGBDOdometryJacobianFromColorTerm`` / ``...FromHybridTerm``, frame to frame, identity
+  initial guess, default ``OdometryOption``; images from
+  ``RGBDImage.create_from_color_and_depth(depth_scale=1.0, depth_trunc=4.0,
+  convert_rgb_to_intensity=True)`` on depth in metres.
+
+Both peers return Rt with ``Rt * p_src = p_dst`` (the pose of the source frame seen from the
+target frame, T_dst_src; checked against ground truth on fr3_teddy frames 20 -> 25). Every
+peer starts from edgevo's first pose (``runner.initial_pose``: T_world_cam of frame 0 from
+the nearest ground-truth pose) and chains ``T_world_k = T_world_(k-1) @ inv(Rt_k)``. A pair
+whose ``compute`` returns false, raises, or gives a non-finite matrix counts as a lost frame
+and reuses the previous motion (constant velocity; identity before any success).
+
+What is measured, per method and sequence, each in its own child process (``--one``), so
+that the peak RSS is the method's own and a crashing peer cannot take the benchmark down:
+
+- ATE RMSE (m; TUM's ``evaluate_ate``: rigid Horn alignment) and RPE (translation RMSE over
+  1 s, m/s; null when the processed clip spans less than 1 s), from ``edgevo_jax.metrics``.
+- Per-frame wall time (``time.perf_counter``), PNG decoding excluded and everything else
+  included: for peers from ``seq.decode_frame``'s arrays to the pose (undistortion and depth
+  scaling by ``seq.rectify_frame``, gray conversion, the library's frame objects, preparation
+  and solve); for edgevo ``RunResult.frame_ms``, which has the same boundary (decoding
+  excluded, ``rectify_frame`` and preprocessing included). Warm median / p90 skip the first
+  two frames (frame 0 only sets up; frame 1 is the first pair, and edgevo compiles then).
+  ``first_frame_ms``: edgevo's ``compile_s`` (cold XLA compilation in a fresh process, no
+  persistent cache), for peers the time of their first pair.
+- ``peak_rss_mib``: ``ru_maxrss`` of the child at its end. Every child imports edgevo_jax
+  (and so JAX and OpenCV) to read the sequence; ``baseline_rss_mib`` is the peak after
+  that, before the method's own library was imported and the method started.
+- ``ratio_to_edgevo``: warm median / warm median of the default ``edgevo`` variant on the
+  same sequence.
+- For edgevo variants a per-stage profile (medians over warm frames): decode
+  (``run.decode_ms``), preprocess (``FrameResult.preprocess_ms``), solve wait
+  (``FrameResult.solve_ms``) and host other = frame - preprocess - solve wait (clipped at
+  0). The solve runs while the next frame is preprocessed, so the stages do not add up to
+  the frame time.
+
+A peer whose library is absent (ImportError, or an OpenCV without ``cv2.Odometry``) is
+reported as ``"missing": "<reason>"``; an unknown method name likewise. Results go to
+``--out-json`` (with machine information; NaN written as null) and ``--out-md``; the
+markdown table and the profile are printed to stdout, progress to stderr.
+
+The data are the TUM RGB-D benchmark's (CC BY 4.0): J. Sturm, N. Engelhard, F. Endres,
+W. Burgard, D. Cremers, "A Benchmark for the Evaluation of RGB-D SLAM Systems", IROS 2012.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import importlib.metadata
+import json
+import math
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SHARED_TUM = Path(__file__).resolve().parents[2] / "shared" / "data" / "tum"
+DEFAULT_CLIPS = (
+    "rgbd_dataset_freiburg3_teddy_first200",
+    "rgbd_dataset_freiburg1_xyz_first10",
+    "rgbd_dataset_freiburg1_desk_clip9",
+)
+DEFAULT_EDGEVO = "edgevo"
+PEERS = ("cv2_rgb", "cv2_depth", "cv2_rgbd", "o3d_color", "o3d_hybrid")
+WARMUP_FRAMES = 2  # frame 0 sets up, frame 1 is the first pair (edgevo: compiles)
+O3D_DEPTH_TRUNC_M = 4.0  # = OdometryOption().depth_max
+PROFILE_NOTE = (
+    "solve wait = FrameResult.solve_ms, from submitting frame k to its result; it runs while "
+    "the host preprocesses frame k+1, so preprocess and solve overlap and the stages do not "
+    "add up to the frame time; host other = frame - preprocess - solve wait, clipped at 0"
+)
+
+Pose = np.ndarray  # (4, 4) float64
+
+
+class PeerMissing(Exception):
+    """The peer cannot run here (library absent or too old, unknown name)."""
+
+
+class PeerTracker(Protocol):
+    """A frame-to-frame odometry peer."""
+
+    description: str
+
+    def step(self, rgb: np.ndarray, depth: np.ndarray) -> Pose | None:
+        """Feed the next frame (rgb uint8 RGB order, depth float32 metres). Returns Rt =
+        T_current_previous, or None for the first frame or a failed pair."""
+        ...
+
+
+# --------------------------------------------------------------------------------------------
+# peers
+
+
+def camera_matrix(intrinsics: Sequence[float]) -> np.ndarray:
+    """3x3 pinhole matrix from (fx, fy, cx, cy)."""
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+class Cv2Odometry:
+    """OpenCV 5 ``cv2.Odometry``, frame to frame (``prepareFrames`` + ``compute``)."""
+
+    MODES = {"cv2_rgb": "RGB", "cv2_depth": "DEPTH", "cv2_rgbd": "RGB_DEPTH"}
+
+    def __init__(self, method: str, intrinsics: Sequence[float]) -> None:
+        try:
+            import cv2
+        except ImportError as err:
+            raise PeerMissing(f"cannot import cv2: {err}") from None
+        missing = [n for n in ("Odometry", "OdometryFrame", "OdometrySettings")
+                   if not hasattr(cv2, n)]
+        if missing:
+            raise PeerMissing(f"OpenCV {cv2.__version__} has no cv2.{', cv2.'.join(missing)} "
+                              "(needs OpenCV 5)")
+        self._cv2 = cv2
+        mode = self.MODES[method]
+        settings = cv2.OdometrySettings()
+        settings.setCameraMatrix(camera_matrix(intrinsics).astype(np.float32))
+        self._odo = cv2.Odometry(getattr(cv2, f"OdometryType_{mode}"), settings,
+                                 cv2.OdometryAlgoType_COMMON)
+        self._use_image = mode != "DEPTH"
+        self._prev: tuple[Any, tuple[np.ndarray, ...]] | None = None
+        self.description = (
+            f"cv2.Odometry(cv2.OdometryType_{mode}, OdometrySettings(cameraMatrix=K), "
+            "cv2.OdometryAlgoType_COMMON); frame = cv2.OdometryFrame(depth_m_float32"
+            + (", gray_uint8" if self._use_image else "")
+            + "); odo.prepareFrames(prev, cur); ok, Rt = odo.compute(prev, cur)"
+        )
+
+    def step(self, rgb: np.ndarray, depth: np.ndarray) -> Pose | None:
+        """See :class:`PeerTracker`."""
+        cv2 = self._cv2
+        depth = np.ascontiguousarray(depth, np.float32)
+        if self._use_image:
+            gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+            frame, keep = cv2.OdometryFrame(depth, gray), (depth, gray)
+        else:
+            frame, keep = cv2.OdometryFrame(depth), (depth,)
+        # the frame with the arrays it may point into, kept alive as long as the frame
+        prev, self._prev = self._prev, (frame, keep)
+        if prev is None:
+            return None
+        self._odo.prepareFrames(prev[0], frame)
+        ok, rt = self._odo.compute(prev[0], frame)
+        return np.asarray(rt, np.float64) if ok else None
+
+
+class Open3dOdometry:
+    """Open3D ``compute_rgbd_odometry`` (colour or hybrid term), frame to frame."""
+
+    def __init__(self, method: str, intrinsics: Sequence[float], width: int, height: int) -> None:
+        try:
+            import open3d as o3d
+        except (ImportError, OSError) as err:  # OSError: a missing system library
+            raise PeerMissing(f"cannot import open3d: {err}") from None
+        self._o3d = o3d
+        odometry = o3d.pipelines.odometry
+        term = "Color" if method == "o3d_color" else "Hybrid"
+        self._jacobian = getattr(odometry, f"RGBDOdometryJacobianFrom{term}Term")()
+        self._option = odometry.OdometryOption()
+        fx, fy, cx, cy = (float(v) for v in intrinsics)
+        self._intrinsic = o3d.camera.PinholeCameraIntrinsic(width, height, fx, fy, cx, cy)
+        self._prev: Any = None
+        self.description = (
+            "o3d.pipelines.odometry.compute_rgbd_odometry(prev, cur, PinholeCameraIntrinsic, "
+            f"np.eye(4), RGBDOdometryJacobianFrom{term}Term(), OdometryOption()); "
+            "o3d.geometry.RGBDImage.create_from_color_and_depth(Image(rgb), Image(depth_m), "
+            f"depth_scale=1.0, depth_trunc={O3D_DEPTH_TRUNC_M}, convert_rgb_to_intensity=True)"
+        )
+
+    def step(self, rgb: np.ndarray, depth: np.ndarray) -> Pose | None:
+        """See :class:`PeerTracker`."""
+        o3d = self._o3d
+        cur = o3d.geometry.RGBDImage.create_from_color_and_depth(
+            o3d.geometry.Image(np.ascontiguousarray(rgb)),
+            o3d.geometry.Image(np.ascontiguousarray(depth, np.float32)),
+            depth_scale=1.0, depth_trunc=O3D_DEPTH_TRUNC_M, convert_rgb_to_intensity=True,
+        )
+        prev, self._prev = self._prev, cur
+        if prev is None:
+            return None
+        ok, trans, _info = o3d.pipelines.odometry.compute_rgbd_odometry(
+            prev, cur, self._intrinsic, np.eye(4), self._jacobian, self._option)
+        return np.asarray(trans, np.float64) if ok else None
+
+
+def make_peer(method: str, intrinsics: Sequence[float], width: int, height: int) -> PeerTracker:
+    """The peer tracker called ``method``; PeerMissing if unknown or its library is absent."""
+    if method in Cv2Odometry.MODES:
+        return Cv2Odometry(method, intrinsics)
+    if method in ("o3d_color", "o3d_hybrid"):
+        return Open3dOdometry(method, intrinsics, width, height)
+    raise PeerMissing(f"unknown method {method!r} (peers: {', '.join(PEERS)}; edgevo variants "
+                      "are named with --edgevo)")
+
+
+# --------------------------------------------------------------------------------------------
+# running one method on one sequence (in-process; the child process calls this)
+
+
+def parse_variant(spec: str) -> tuple[str, list[str]]:
+    """``name=key=value;key=value`` -> (name, ["key=value", ...]), each override checked
+    against ``edgevo_jax.Config`` (ValueError naming the variant for an unknown key)."""
+    from edgevo_jax import Config
+
+    if "=" not in spec:
+        raise ValueError(f"--edgevo expects NAME=key=value;key=value, got {spec!r}")
+    name, rest = (s.strip() for s in spec.split("=", 1))
+    if not name:
+        raise ValueError(f"--edgevo {spec!r}: empty variant name")
+    if name in PEERS:
+        raise ValueError(f"--edgevo {spec!r}: {name!r} is a peer's name")
+    overrides = [s.strip() for s in rest.split(";") if s.strip()]
+    try:
+        Config().with_overrides(overrides)
+    except (ValueError, TypeError) as err:
+        raise ValueError(f"--edgevo {name}: {err}") from None
+    return name, overrides
+
+
+def _warm(frame_ms: Sequence[float]) -> np.ndarray:
+    return np.asarray(frame_ms[WARMUP_FRAMES:], np.float64)
+
+
+def _median(values: Sequence[float] | np.ndarray) -> float:
+    v = np.asarray(values, np.float64)
+    return float(np.median(v)) if v.size else math.nan
+
+
+def _p90(values: Sequence[float] | np.ndarray) -> float:
+    v = np.asarray(values, np.float64)
+    return float(np.percentile(v, 90)) if v.size else math.nan
+
+
+def _maxrss_mib() -> float:
+    """Peak resident set size of this process so far (MiB; ru_maxrss is KiB on Linux)."""
+    kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return kib / (1024.0 * 1024.0) if sys.platform == "darwin" else kib / 1024.0
+
+
+def accuracy(seq: Any, timestamps: np.ndarray, poses: np.ndarray) -> dict[str, Any]:
+    """ATE RMSE (m) and RPE translation RMSE (m/s; NaN for clips under 1 s) of T_world_cam
+    ``poses`` (N, 4, 4) against the sequence's ground truth."""
+    from edgevo_jax.io import matrices_to_poses7
+    from edgevo_jax.metrics import ate, rpe
+
+    out: dict[str, Any] = {"ate_rmse_m": math.nan, "rpe_m_per_s": math.nan}
+    if seq.groundtruth is None:
+        out["accuracy_note"] = "no groundtruth.txt"
+        return out
+    gt_t, gt_p = seq.groundtruth
+    est = matrices_to_poses7(poses)
+    try:
+        out["ate_rmse_m"] = ate(gt_t, gt_p, timestamps, est)["rmse"]
+        if timestamps.size and timestamps[-1] - timestamps[0] >= 1.0:
+            out["rpe_m_per_s"] = rpe(gt_t, gt_p, timestamps, est)["trans_rmse_m_per_s"]
+        else:
+            out["accuracy_note"] = "RPE n/a: clip shorter than 1 s"
+    except ValueError as err:  # e.g. fewer than 3 poses associated with the ground truth
+        out["accuracy_note"] = str(err)
+    return out
+
+
+class PeerTrack:
+    """A peer's pass over a sequence: T_world_cam poses (N, 4, 4), per-frame times (ms), lost
+    frames and the first few failure messages."""
+
+    def __init__(self, first_pose: Pose) -> None:
+        self.poses: list[Pose] = [np.asarray(first_pose, np.float64)]
+        self.frame_ms: list[float] = []
+        self.decode_ms: list[float] = []
+        self.lost = 0
+        self.failures: list[str] = []
+
+
+def track_peer(peer: PeerTracker, seq: Any, n: int, first_pose: Pose) -> PeerTrack:
+    """Feed frames 0..n-1 of ``seq`` to ``peer`` and chain its motions from ``first_pose``.
+
+    Times each frame from ``decode_frame``'s arrays to the pose (``rectify_frame`` included).
+    A pair that fails (None, non-finite, or an exception) is a lost frame and repeats the
+    previous motion (identity before the first success)."""
+    track = PeerTrack(first_pose)
+    motion = np.eye(4)  # T_previous_current
+    for i in range(n):
+        t0 = time.perf_counter()
+        rgb_raw, depth_raw = seq.decode_frame(i)
+        t1 = time.perf_counter()
+        error = None
+        try:
+            rt = peer.step(*seq.rectify_frame(rgb_raw, depth_raw))
+        except Exception as err:  # a failing peer call is a lost frame, not a crash
+            rt, error = None, f"frame {i}: {type(err).__name__}: {err}"
+        t2 = time.perf_counter()
+        track.decode_ms.append((t1 - t0) * 1e3)
+        track.frame_ms.append((t2 - t1) * 1e3)
+        rt = None if rt is None else np.asarray(rt, np.float64)
+        if rt is not None and rt.shape == (4, 4) and bool(np.all(np.isfinite(rt))):
+            motion = np.linalg.inv(rt)
+        elif i > 0 or error is not None:  # frame 0 has no pair: None is expected there
+            track.lost += 1
+            if len(track.failures) < 5:
+                track.failures.append(error or f"frame {i}: no motion (false or non-finite)")
+        if i > 0:
+            track.poses.append(track.poses[-1] @ motion)
+    return track
+
+
+def run_peer(method: str, seq: Any, max_frames: int | None = None) -> dict[str, Any]:
+    """Track ``seq`` frame to frame with the peer ``method`` from edgevo's first pose; the
+    result row, or ``{"missing": reason}``."""
+    from edgevo_jax.runner import initial_pose
+
+    baseline = _maxrss_mib()
+    try:
+        peer = make_peer(method, seq.intrinsics, seq.width, seq.height)
+    except PeerMissing as err:
+        return {"missing": str(err)}
+    n = len(seq) if max_frames is None else min(len(seq), max_frames)
+    track = track_peer(peer, seq, n, initial_pose(seq))
+    warm = _warm(track.frame_ms)
+    out: dict[str, Any] = {
+        "kind": "peer",
+        "api": peer.description,
+        "frames": n,
+        "lost": track.lost,
+        **accuracy(seq, np.asarray(seq.timestamps[:n], np.float64),
+                   np.asarray(track.poses).reshape(-1, 4, 4)),
+        "first_frame_ms": track.frame_ms[1] if n > 1 else math.nan,
+        "warm_median_ms": _median(warm),
+        "warm_p90_ms": _p90(warm),
+        "warm_mean_ms": float(warm.mean()) if warm.size else math.nan,
+        "decode_median_ms": _median(track.decode_ms[WARMUP_FRAMES:]),
+        "baseline_rss_mib": baseline,
+    }
+    if track.failures:
+        out["failures"] = track.failures
+    return out
+
+
+def run_edgevo(overrides: Sequence[str], seq: Any, max_frames: int | None = None
+               ) -> dict[str, Any]:
+    """Track ``seq`` with edgevo_jax (``Config().with_overrides(overrides)``)."""
+    from edgevo_jax import Config
+    from edgevo_jax.runner import run_sequence, summarise
+
+    config = Config().with_overrides(list(overrides))
+    baseline = _maxrss_mib()
+    run = run_sequence(seq, config, progress=False, max_frames=max_frames)
+    stats = summarise(run, seq)
+    n = len(run.results)
+    warm = _warm(run.frame_ms)
+    pre = [r.preprocess_ms for r in run.results]
+    solve = [r.solve_ms for r in run.results]
+    # frame_ms[k] (the period in which frame k completes) holds the solve wait of frame k and
+    # the preprocessing of frame k + 1 (none after the last frame).
+    other = [max(0.0, run.frame_ms[k] - (pre[k + 1] if k + 1 < n else 0.0) - solve[k])
+             for k in range(WARMUP_FRAMES, n)]
+    return {
+        "kind": "edgevo",
+        "config_overrides": list(overrides),
+        "frames": n,
+        "lost": int(stats["lost"]),
+        "keyframes": int(stats["keyframes"]),
+        **accuracy(seq, run.timestamps, run.poses),
+        "first_frame_ms": run.compile_s * 1e3,
+        "warm_median_ms": _median(warm),
+        "warm_p90_ms": _p90(warm),
+        "warm_mean_ms": float(warm.mean()) if warm.size else math.nan,
+        "profile_ms": {
+            "frame": _median(warm),
+            "decode": _median(run.decode_ms[WARMUP_FRAMES:]),
+            "preprocess": _median(pre[WARMUP_FRAMES:]),
+            "solve_wait": _median(solve[WARMUP_FRAMES:]),
+            "host_other": _median(other),
+        },
+        "baseline_rss_mib": baseline,
+    }
+
+
+def run_method(method: str, seq_dir: str | Path, max_frames: int | None = None,
+               variants: dict[str, list[str]] | None = None) -> dict[str, Any]:
+    """Run one method on one sequence in this process: the result row (``missing`` set
+    instead of the measurements when the method cannot run here)."""
+    from edgevo_jax.datasets import load_sequence
+
+    variants = {DEFAULT_EDGEVO: [], **(variants or {})}
+    seq = load_sequence(seq_dir)
+    row: dict[str, Any] = {"method": method, "sequence": seq.name, "path": str(seq_dir)}
+    if method in variants:
+        row.update(run_edgevo(variants[method], seq, max_frames))
+    else:
+        row.update(run_peer(method, seq, max_frames))
+    return row
+
+
+# --------------------------------------------------------------------------------------------
+# the parent: one child per method and sequence, then tables and JSON
+
+
+def run_child(method: str, seq_dir: Path, max_frames: int | None, variant_spec: str | None,
+              timeout_s: float | None) -> dict[str, Any]:
+    """Run ``method`` on ``seq_dir`` in a child process (``--one``); a crash or a timeout
+    becomes an ``error`` row."""
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--one", method, str(seq_dir)]
+    if max_frames is not None:
+        cmd += ["--max-frames", str(max_frames)]
+    if variant_spec is not None:
+        cmd += ["--edgevo", variant_spec]
+    base = {"method": method, "sequence": seq_dir.name, "path": str(seq_dir)}
+    try:
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s,
+                              check=False)
+    except subprocess.TimeoutExpired:
+        return {**base, "error": f"timed out after {timeout_s} s"}
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("{")]
+    rc = proc.returncode
+    status = f"killed by signal {-rc}" if rc < 0 else f"exited with status {rc}"
+    if not lines:
+        tail = " | ".join(proc.stderr.strip().splitlines()[-3:])
+        return {**base, "error": f"child {status}: {tail}"}
+    row = json.loads(lines[-1])
+    if rc != 0:  # the result was complete, the child failed afterwards (at exit, say)
+        row["child_exit"] = status
+    return row
+
+
+def add_ratios(rows: list[dict[str, Any]], reference: str = DEFAULT_EDGEVO) -> None:
+    """Set ``ratio_to_edgevo`` = warm median / the reference method's warm median on the
+    same sequence (NaN where either is unavailable)."""
+    ref = {r["sequence"]: r.get("warm_median_ms", math.nan)
+           for r in rows if r["method"] == reference}
+    for r in rows:
+        if "missing" in r or "error" in r:
+            continue
+        den = ref.get(r["sequence"], math.nan)
+        num = r.get("warm_median_ms", math.nan)
+        ok = den is not None and num is not None and den > 0
+        r["ratio_to_edgevo"] = num / den if ok else math.nan
+
+
+def json_safe(obj: Any) -> Any:
+    """NaN / inf -> None, recursively; numpy scalars to Python."""
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    return obj
+
+
+def _fmt(v: Any, spec: str) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "n/a"
+    return format(v, spec)
+
+
+def markdown_table(rows: list[dict[str, Any]]) -> str:
+    """The results as a markdown table, one row per method and sequence."""
+    head = ("| sequence | method | ATE RMSE (m) | RPE (m/s) | frames | lost | first frame (ms) "
+            "| warm median (ms) | warm p90 (ms) | x edgevo | peak RSS (MiB) | note |")
+    lines = [head, "|" + "---|" * 12]
+    for r in rows:
+        if "missing" in r or "error" in r:
+            note = f"missing: {r['missing']}" if "missing" in r else f"error: {r['error']}"
+            cells = [r["sequence"], r["method"]] + ["-"] * 9 + [note.replace("|", "/")]
+        else:
+            cells = [
+                r["sequence"], r["method"], _fmt(r.get("ate_rmse_m"), ".4f"),
+                _fmt(r.get("rpe_m_per_s"), ".4f"), str(r.get("frames", "")),
+                str(r.get("lost", "")), _fmt(r.get("first_frame_ms"), ".0f"),
+                _fmt(r.get("warm_median_ms"), ".1f"), _fmt(r.get("warm_p90_ms"), ".1f"),
+                _fmt(r.get("ratio_to_edgevo"), ".2f"), _fmt(r.get("peak_rss_mib"), ".0f"),
+                "; ".join(filter(None, [
+                    "config: " + ";".join(r["config_overrides"])
+                    if r.get("config_overrides") else "",
+                    r.get("accuracy_note", "")])).replace("|", "/"),
+            ]
+        lines.append("| " + " | ".join(cells) + " |")
+    base = [r["baseline_rss_mib"] for r in rows if r.get("baseline_rss_mib") is not None]
+    if base:
+        lines.append(f"\nPeak RSS is the whole child process's: each starts at ~"
+                     f"{_median(base):.0f} MiB (edgevo_jax, JAX and OpenCV imported, sequence "
+                     "loaded) before the method's library and frames (baseline_rss_mib).")
+    return "\n".join(lines)
+
+
+def profile_table(rows: list[dict[str, Any]]) -> str:
+    """Per-stage medians of the edgevo variants (ms per warm frame)."""
+    lines = ["| sequence | variant | frame | decode | preprocess | solve wait | host other |",
+             "|" + "---|" * 7]
+    for r in rows:
+        p = r.get("profile_ms")
+        if p is None:
+            continue
+        lines.append("| " + " | ".join([r["sequence"], r["method"]] + [
+            _fmt(p.get(k), ".1f")
+            for k in ("frame", "decode", "preprocess", "solve_wait", "host_other")]) + " |")
+    return "\n".join(lines) + f"\n\n{PROFILE_NOTE}."
+
+
+def _version(dist: str) -> str | None:
+    try:
+        return importlib.metadata.version(dist)
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
+def _git(*args: str) -> str | None:
+    try:
+        out = subprocess.run(["git", *args], cwd=REPO_ROOT, capture_output=True, text=True,
+                             timeout=10, check=True,  # no index.lock: others may commit
+                             env={**os.environ, "GIT_OPTIONAL_LOCKS": "0"}).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out
+
+
+def machine_info() -> dict[str, Any]:
+    """Where and with what the benchmark ran."""
+    cv2_info: str | None
+    try:
+        import cv2
+
+        cv2_info = cv2.__version__ + ("" if hasattr(cv2, "Odometry") else " (no cv2.Odometry)")
+    except ImportError:
+        cv2_info = None
+    status = _git("status", "--porcelain", "--untracked-files=no")
+    return {
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "cpus_usable": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+        "python": sys.version.split()[0],
+        "numpy": _version("numpy"),
+        "jax": _version("jax"),
+        "jaxlib": _version("jaxlib"),
+        "opencv": cv2_info,
+        "open3d": _version("open3d"),
+        "edgevo_jax": _version("edgevo_jax"),
+        "git_commit": _git("rev-parse", "HEAD"),
+        "git_dirty": bool(status) if status is not None else None,
+    }
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        description="Benchmark edgevo_jax against OpenCV / Open3D RGB-D odometry on TUM clips.")
+    p.add_argument("sequences", nargs="*", type=Path, metavar="SEQ_DIR",
+                   help=f"TUM sequence folders (default: the clips in {SHARED_TUM})")
+    p.add_argument("--max-frames", type=int, default=None,
+                   help="use at most this many frames per sequence")
+    p.add_argument("--methods", default=None,
+                   help="comma-separated methods (default: the edgevo variants and "
+                        f"{','.join(PEERS)})")
+    p.add_argument("--edgevo", action="append", default=[], metavar="NAME=key=v;key=v",
+                   help="an extra edgevo variant (repeatable), e.g. 'edgevo_all=selection=all'")
+    p.add_argument("--out-json", type=Path, default=Path("bench.json"))
+    p.add_argument("--out-md", type=Path, default=Path("bench.md"))
+    p.add_argument("--timeout", type=float, default=3600.0,
+                   help="seconds allowed per method and sequence (default 3600)")
+    p.add_argument("--one", metavar="METHOD", default=None, help=argparse.SUPPRESS)
+    return p
+
+
+def _child_main(args: argparse.Namespace, variants: dict[str, list[str]]) -> int:
+    if len(args.sequences) != 1:
+        raise ValueError("--one takes exactly one sequence")
+    row = run_method(args.one, args.sequences[0], args.max_frames, variants)
+    row["peak_rss_mib"] = _maxrss_mib()
+    print(json.dumps(json_safe(row)), flush=True)
+    return 0
+
+
+def _progress(k: int, total: int, row: dict[str, Any], seconds: float) -> str:
+    head = f"[{k}/{total}] {row['method']} on {row['sequence']}"
+    if "missing" in row:
+        return f"{head}: missing ({row['missing']})"
+    if "error" in row:
+        return f"{head}: ERROR {row['error']}"
+    return (f"{head}: ATE {_fmt(row.get('ate_rmse_m'), '.4f')} m, warm "
+            f"{_fmt(row.get('warm_median_ms'), '.1f')} ms/frame, lost {row.get('lost')}, "
+            f"peak {_fmt(row.get('peak_rss_mib'), '.0f')} MiB ({seconds:.1f} s)")
+
+
+def main(argv: list[str] | None = None,
+         progress: Callable[[str], None] | None = None) -> int:
+    """Entry point: run the benchmark (or, with ``--one``, one method as a child)."""
+    args = _parser().parse_args(argv)
+    say = progress or (lambda line: print(line, file=sys.stderr, flush=True))
+    try:
+        variants = {DEFAULT_EDGEVO: []} | dict(parse_variant(s) for s in args.edgevo)
+        if args.max_frames is not None and args.max_frames < 1:
+            raise ValueError("--max-frames must be positive")
+        if args.one is not None:
+            return _child_main(args, variants)
+        if args.sequences:
+            seqs = list(args.sequences)
+            absent = [s for s in seqs if not s.is_dir()]
+            if absent:
+                raise FileNotFoundError(f"sequence folder not found: {absent[0]}")
+        else:
+            seqs = [SHARED_TUM / name for name in DEFAULT_CLIPS]
+            absent = [s for s in seqs if not s.is_dir()]
+            if absent:
+                raise FileNotFoundError(
+                    f"default TUM clips not found ({absent[0]}); pass SEQ_DIR arguments")
+    except (FileNotFoundError, ValueError) as err:
+        print(f"bench.py: error: {err}", file=sys.stderr)
+        return 2
+    methods = ([m.strip() for m in args.methods.split(",") if m.strip()]
+               if args.methods else [*variants, *PEERS])
+    specs = dict(zip([parse_variant(s)[0] for s in args.edgevo], args.edgevo, strict=True))
+
+    rows: list[dict[str, Any]] = []
+    total, k = len(seqs) * len(methods), 0
+    for seq_dir in seqs:
+        for method in methods:
+            k += 1
+            t0 = time.perf_counter()
+            row = run_child(method, seq_dir, args.max_frames, specs.get(method), args.timeout)
+            rows.append(row)
+            say(_progress(k, total, row, time.perf_counter() - t0))
+    add_ratios(rows)
+
+    md = markdown_table(rows)
+    prof = profile_table(rows)
+    report = {
+        "machine": machine_info(),
+        "settings": {
+            "max_frames": args.max_frames, "methods": methods, "warmup_frames": WARMUP_FRAMES,
+            "edgevo_variants": {m: variants[m] for m in methods if m in variants},
+            "sequences": [str(s) for s in seqs],
+            "timing": "per-frame wall time, PNG decoding excluded; warm = frames from the third",
+            "profile_note": PROFILE_NOTE,
+        },
+        "results": rows,
+    }
+    for path, text in ((args.out_json, json.dumps(json_safe(report), indent=2) + "\n"),
+                       (args.out_md, f"{md}\n\nedgevo per-stage profile (median ms)\n\n"
+                                     f"{prof}\n")):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+    print(md)
+    print("\nedgevo per-stage profile (median ms per warm frame)\n")
+    print(prof)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,136 @@
+"""scripts/bench.py: one peer on the bundled clip in-process, missing peers, tables and JSON."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from edgevo_jax.cli import BUNDLED_CLIP
+
+BENCH_PATH = Path(__file__).resolve().parents[1] / "scripts" / "bench.py"
+
+
+@pytest.fixture(scope="module")
+def bench():
+    """The script as a module (imported from its path; not a package)."""
+    spec = importlib.util.spec_from_file_location("edgevo_bench_script", BENCH_PATH)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    try:
+        spec.loader.exec_module(module)
+        yield module
+    finally:
+        sys.modules.pop(spec.name, None)
+
+
+ROW_KEYS = {"method", "sequence", "path", "kind", "api", "frames", "lost", "ate_rmse_m",
+            "rpe_m_per_s", "first_frame_ms", "warm_median_ms", "warm_p90_ms",
+            "baseline_rss_mib"}
+
+
+def test_cv2_rgb_tracks_the_bundled_clip(bench):
+    cv2 = pytest.importorskip("cv2")
+    if not hasattr(cv2, "Odometry"):
+        pytest.skip(f"OpenCV {cv2.__version__} has no cv2.Odometry (needs OpenCV 5)")
+    row = bench.run_method("cv2_rgb", BUNDLED_CLIP, max_frames=5)
+    assert "missing" not in row, row
+    assert ROW_KEYS <= row.keys()
+    assert row["method"] == "cv2_rgb" and row["frames"] == 5 and row["lost"] == 0
+    assert math.isfinite(row["ate_rmse_m"]) and row["ate_rmse_m"] < 0.05
+    assert math.isnan(row["rpe_m_per_s"])  # 5 frames span 0.13 s
+    assert row["warm_median_ms"] > 0 and row["first_frame_ms"] > 0
+    json.dumps(bench.json_safe(row), allow_nan=False)
+
+
+def test_unknown_peer_is_reported_missing(bench):
+    row = bench.run_method("no_such_peer", BUNDLED_CLIP, max_frames=3)
+    assert "unknown method 'no_such_peer'" in row["missing"]
+    assert row["sequence"] == BUNDLED_CLIP.name
+
+
+def test_missing_library_is_reported_missing(bench, monkeypatch):
+    monkeypatch.setitem(sys.modules, "open3d", None)  # makes `import open3d` raise ImportError
+    row = bench.run_method("o3d_color", BUNDLED_CLIP, max_frames=3)
+    assert row["missing"].startswith("cannot import open3d"), row
+
+
+def test_opencv_without_odometry_is_reported_missing(bench, monkeypatch):
+    cv2 = pytest.importorskip("cv2")
+    if hasattr(cv2, "Odometry"):
+        monkeypatch.delattr(cv2, "Odometry")
+    with pytest.raises(bench.PeerMissing, match="no cv2.Odometry"):
+        bench.make_peer("cv2_depth", (500.0, 500.0, 320.0, 240.0), 640, 480)
+
+
+def test_variants_are_checked(bench):
+    assert bench.parse_variant("edgevo_fast=max_depth=4.0; min_inliers=20") == (
+        "edgevo_fast", ["max_depth=4.0", "min_inliers=20"])
+    with pytest.raises(ValueError, match="unknown config key 'no_such_key'"):
+        bench.parse_variant("bad=no_such_key=1")
+    with pytest.raises(ValueError, match="expects NAME"):
+        bench.parse_variant("no_equals_sign")
+
+
+def test_ratios_tables_and_json(bench):
+    rows = [
+        {"method": "edgevo", "sequence": "s", "warm_median_ms": 10.0, "ate_rmse_m": 0.01,
+         "rpe_m_per_s": math.nan, "frames": 9, "lost": 0,
+         "profile_ms": {"frame": 10.0, "decode": 5.0, "preprocess": 8.0, "solve_wait": 9.0,
+                        "host_other": 0.0}},
+        {"method": "cv2_rgb", "sequence": "s", "warm_median_ms": 35.0, "ate_rmse_m": 0.02,
+         "frames": 9, "lost": 1},
+        {"method": "o3d_color", "sequence": "s", "missing": "cannot import open3d: x | y"},
+    ]
+    bench.add_ratios(rows)
+    assert rows[0]["ratio_to_edgevo"] == 1.0 and rows[1]["ratio_to_edgevo"] == 3.5
+    assert "ratio_to_edgevo" not in rows[2]
+    md = bench.markdown_table(rows)
+    assert "missing: cannot import open3d: x / y" in md and "| 3.50 |" in md
+    assert len(md.splitlines()) == 5
+    assert "solve wait" in bench.profile_table(rows)
+    safe = bench.json_safe(rows)
+    assert safe[0]["rpe_m_per_s"] is None
+    json.dumps(safe, allow_nan=False)
+
+
+def test_absent_default_clips_are_a_clear_error(bench, monkeypatch, tmp_path, capsys):
+    monkeypatch.setattr(bench, "SHARED_TUM", tmp_path / "nowhere")
+    assert bench.main(["--out-json", str(tmp_path / "b.json")]) == 2
+    assert "default TUM clips not found" in capsys.readouterr().err
+
+
+def test_failed_pairs_are_lost_frames_with_constant_velocity(bench):
+    """Rt is T_current_previous; failures (None, non-finite, exceptions) repeat the last
+    motion and are counted."""
+    from edgevo_jax.datasets import load_sequence
+
+    step = np.eye(4)
+    step[:3, 3] = [0.0, 0.0, -0.01]  # the camera moves 1 cm along +z per frame
+
+    class Scripted:
+        description = "scripted"
+
+        def __init__(self):
+            self.calls = 0
+
+        def step(self, rgb, depth):
+            self.calls += 1
+            outcome = [None, step, None, np.full((4, 4), np.nan), "raise", step][self.calls - 1]
+            if isinstance(outcome, str):
+                raise RuntimeError("boom")
+            return outcome
+
+    seq = load_sequence(BUNDLED_CLIP)
+    first = np.eye(4)
+    first[:3, 3] = [1.0, 2.0, 3.0]
+    track = bench.track_peer(Scripted(), seq, 6, first)
+    assert track.lost == 3 and len(track.frame_ms) == 6
+    assert "RuntimeError: boom" in track.failures[-1]
+    z = np.array([p[2, 3] for p in track.poses])
+    np.testing.assert_allclose(z, 3.0 + 0.01 * np.arange(6))
