@@ -8,6 +8,8 @@ import math
 import sys
 from pathlib import Path
 
+from .io import json_safe
+
 BUNDLED_CLIP = Path(__file__).resolve().parent / "data" / "rgbd_dataset_freiburg1_xyz_first10"
 
 
@@ -87,7 +89,7 @@ def _run(args: argparse.Namespace) -> int:
     stats = summarise(run, seq)
     if args.stats is not None:
         args.stats.parent.mkdir(parents=True, exist_ok=True)
-        args.stats.write_text(json.dumps(_json_safe(stats), indent=2) + "\n")
+        args.stats.write_text(json.dumps(json_safe(stats), indent=2) + "\n")
     print(_summary_text(stats, out))
     return 0
 
@@ -125,7 +127,7 @@ def _eval(args: argparse.Namespace) -> int:
               r["trans_rmse_m_per_s"], "rpe_rmse_deg_per_s": r["rot_rmse_deg_per_s"],
               "rpe_pairs": r["n"]}
     if args.json:
-        print(json.dumps(_json_safe(result)))
+        print(json.dumps(json_safe(result)))
     else:
         print(f"ATE RMSE  {a['rmse']:.6f} m  ({a['n']} pairs)")
         if r["n"]:
@@ -134,17 +136,6 @@ def _eval(args: argparse.Namespace) -> int:
         else:
             print("RPE       n/a (no pose pairs 1 s apart)")
     return 0
-
-
-def _json_safe(obj):
-    """NaN / inf -> null, recursively (JSON has no NaN)."""
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    if isinstance(obj, dict):
-        return {k: _json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_safe(v) for v in obj]
-    return obj
 
 
 if __name__ == "__main__":

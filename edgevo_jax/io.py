@@ -6,6 +6,7 @@ scalar last) of T_world_cam, as in TUM's ``groundtruth.txt``.
 
 from __future__ import annotations
 
+import math
 import os
 import re
 from pathlib import Path
@@ -232,3 +233,17 @@ def matrices_to_poses7(mats: np.ndarray) -> np.ndarray:
     if m.ndim < 2 or m.shape[-2:] != (4, 4):
         raise ValueError(f"pose matrices must have shape (..., 4, 4), got {m.shape}")
     return np.concatenate([m[..., :3, 3], rotmat_to_quat(m[..., :3, :3])], axis=-1)
+
+
+def json_safe(obj: object) -> object:
+    """For json.dumps: NaN / inf -> None and numpy scalars -> Python, recursively (JSON has
+    no NaN)."""
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    return obj

@@ -81,6 +81,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from edgevo_jax.io import json_safe
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_TUM = Path(__file__).resolve().parents[2] / "shared" / "data" / "tum"
 DEFAULT_CLIPS = (
@@ -465,19 +467,6 @@ def add_ratios(rows: list[dict[str, Any]], reference: str = DEFAULT_EDGEVO) -> N
         num = r.get("warm_median_ms", math.nan)
         ok = den is not None and num is not None and den > 0
         r["ratio_to_edgevo"] = num / den if ok else math.nan
-
-
-def json_safe(obj: Any) -> Any:
-    """NaN / inf -> None, recursively; numpy scalars to Python."""
-    if isinstance(obj, np.generic):
-        obj = obj.item()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    if isinstance(obj, dict):
-        return {k: json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [json_safe(v) for v in obj]
-    return obj
 
 
 def _fmt(v: Any, spec: str) -> str:
