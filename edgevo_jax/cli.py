@@ -52,28 +52,14 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
-def _enable_compilation_cache() -> None:
-    """Keep compiled XLA programs on disk between runs (EDGEVO_CACHE_DIR, default
-    ~/.cache/edgevo_jax): the first run compiles for seconds, later runs load in well under
-    one. Set EDGEVO_CACHE_DIR to an empty string to turn it off."""
-    import os
-
-    import jax
-
-    path = os.environ.get("EDGEVO_CACHE_DIR", str(Path.home() / ".cache" / "edgevo_jax"))
-    if path:
-        jax.config.update("jax_compilation_cache_dir", path)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-
-
 def _run(args: argparse.Namespace) -> int:
     from .camera import Intrinsics
     from .config import Config
     from .datasets.tum import load_sequence
-    from .runner import run_sequence, summarise
+    from .runner import enable_compilation_cache, run_sequence, summarise
 
     config = Config().with_overrides(args.overrides)
-    _enable_compilation_cache()
+    enable_compilation_cache()
     path = args.sequence if args.sequence is not None else BUNDLED_CLIP
     kwargs = {"depth_factor": args.depth_factor}
     if args.intrinsics is not None:

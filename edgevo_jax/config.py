@@ -83,7 +83,7 @@ class Config:
 
     @property
     def edge_slots(self) -> int:
-        """Number of keyframe edge slots the tracker is compiled for."""
+        """Most keyframe edges tracked (``all`` packs them into power-of-two slot counts)."""
         return self.max_edges if self.selection == "all" else self.num_edges
 
     @property

@@ -236,14 +236,16 @@ def matrices_to_poses7(mats: np.ndarray) -> np.ndarray:
 
 
 def json_safe(obj: object) -> object:
-    """For json.dumps: NaN / inf -> None and numpy scalars -> Python, recursively (JSON has
-    no NaN)."""
+    """For json.dumps: NaN / inf -> None, numpy arrays and scalars -> Python, recursively
+    (JSON has no NaN)."""
+    if isinstance(obj, np.ndarray):
+        return json_safe(obj.tolist())
     if isinstance(obj, np.generic):
         obj = obj.item()
     if isinstance(obj, float) and not math.isfinite(obj):
         return None
     if isinstance(obj, dict):
-        return {k: json_safe(v) for k, v in obj.items()}
+        return {str(k): json_safe(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [json_safe(v) for v in obj]
     return obj

@@ -51,6 +51,21 @@ class RunResult:
         return np.array([r.pose for r in self.results]).reshape(-1, 4, 4)
 
 
+def enable_compilation_cache() -> str | None:
+    """Keep compiled XLA programs on disk between runs (EDGEVO_CACHE_DIR, default
+    ~/.cache/edgevo_jax): the first run compiles for seconds, later runs load in about one.
+    An empty EDGEVO_CACHE_DIR turns it off. Returns the folder, or None."""
+    import os
+
+    import jax
+
+    path = os.environ.get("EDGEVO_CACHE_DIR", str(Path.home() / ".cache" / "edgevo_jax"))
+    if path:
+        jax.config.update("jax_compilation_cache_dir", path)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    return path or None
+
+
 def initial_pose(seq: TumSequence) -> np.ndarray:
     """T_world_cam of the first frame: the nearest ground-truth pose, else identity."""
     if len(seq) == 0:

@@ -264,7 +264,10 @@ def keyframe_edges(
     frame: Frame, config: Config, *, seed: int, T_prior: np.ndarray | None = None,
     intr: Intrinsics | None = None,
 ) -> KeyframeEdges:
-    """The keyframe's tracked edges in ``config.edge_slots`` slots (numpy).
+    """The keyframe's tracked edges in fixed slots (numpy): ``num_edges`` for the selecting
+    modes; for ``all``, the next power of two (>= 1024, <= ``max_edges``) above the number
+    of edges, so that the baseline pays for the edges it tracks and not for empty slots
+    (a handful of sizes, each compiled once).
 
     T_prior (4, 4): the expected T_next_kf (identity when unknown); intr is needed for the
     information-based modes (spg, greedy).
@@ -275,4 +278,7 @@ def keyframe_edges(
         raise ValueError(f"selection={config.selection} needs the camera intrinsics")
     h, w = frame.shape
     idx = select(cands, config, T_prior=T_prior, intr=intr, width=w, height=h, seed=seed)
-    return pack_edges(cands, idx, config.edge_slots)
+    slots = config.edge_slots
+    if config.selection == "all":
+        slots = min(config.max_edges, max(1024, 1 << max(idx.size - 1, 0).bit_length()))
+    return pack_edges(cands, idx, slots)

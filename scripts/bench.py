@@ -65,12 +65,8 @@ W. Burgard, D. Cremers, "A Benchmark for the Evaluation of RGB-D SLAM Systems", 
 from __future__ import annotations
 
 import argparse
-import datetime
-import importlib.metadata
 import json
 import math
-import os
-import platform
 import resource
 import subprocess
 import sys
@@ -82,6 +78,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from edgevo_jax.io import json_safe
+from edgevo_jax.provenance import machine_info
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_TUM = Path(__file__).resolve().parents[2] / "shared" / "data" / "tum"
@@ -519,49 +516,10 @@ def profile_table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines) + f"\n\n{PROFILE_NOTE}."
 
 
-def _version(dist: str) -> str | None:
-    try:
-        return importlib.metadata.version(dist)
-    except importlib.metadata.PackageNotFoundError:
-        return None
 
 
-def _git(*args: str) -> str | None:
-    try:
-        out = subprocess.run(["git", *args], cwd=REPO_ROOT, capture_output=True, text=True,
-                             timeout=10, check=True,  # no index.lock: others may commit
-                             env={**os.environ, "GIT_OPTIONAL_LOCKS": "0"}).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return out
 
 
-def machine_info() -> dict[str, Any]:
-    """Where and with what the benchmark ran."""
-    cv2_info: str | None
-    try:
-        import cv2
-
-        cv2_info = cv2.__version__ + ("" if hasattr(cv2, "Odometry") else " (no cv2.Odometry)")
-    except ImportError:
-        cv2_info = None
-    status = _git("status", "--porcelain", "--untracked-files=no")
-    return {
-        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "cpu_count": os.cpu_count(),
-        "cpus_usable": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
-        "python": sys.version.split()[0],
-        "numpy": _version("numpy"),
-        "jax": _version("jax"),
-        "jaxlib": _version("jaxlib"),
-        "opencv": cv2_info,
-        "open3d": _version("open3d"),
-        "edgevo_jax": _version("edgevo_jax"),
-        "git_commit": _git("rev-parse", "HEAD"),
-        "git_dirty": bool(status) if status is not None else None,
-    }
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -647,7 +605,7 @@ def main(argv: list[str] | None = None,
     md = markdown_table(rows)
     prof = profile_table(rows)
     report = {
-        "machine": machine_info(),
+        "machine": {**machine_info(("open3d",)), "opencv_odometry": _cv2_odometry()},
         "settings": {
             "max_frames": args.max_frames, "methods": methods, "warmup_frames": WARMUP_FRAMES,
             "edgevo_variants": {m: variants[m] for m in methods if m in variants},
@@ -670,3 +628,12 @@ def main(argv: list[str] | None = None,
 
 if __name__ == "__main__":
     raise SystemExit(main())
+
+
+def _cv2_odometry() -> bool | None:
+    """Whether this OpenCV has cv2.Odometry (None without OpenCV)."""
+    try:
+        import cv2
+    except ImportError:
+        return None
+    return hasattr(cv2, "Odometry")
