@@ -9,7 +9,7 @@ with distances rescaled to the level's pixels.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cache
 
@@ -92,8 +92,14 @@ def nearest_edge_map(grad: np.ndarray, labels: np.ndarray) -> np.ndarray:
 
 def preprocess(rgb: np.ndarray, depth: np.ndarray, config: Config) -> Frame:
     """Turn an RGB (H, W, 3) uint8 image and a depth map (H, W) in metres into a Frame."""
+    return start_preprocess(rgb, depth, config).finish()
+
+
+def start_preprocess(rgb: np.ndarray, depth: np.ndarray, config: Config) -> PreprocessJob:
+    """The first half of ``preprocess``: edges found and the distance transform launched on
+    the worker thread. Do other work, then call ``.finish()`` for the Frame."""
     edges, gx, gy = detect_edges(to_gray(rgb), config)
-    return frame_from_edges(edges, gx, gy, depth, config)
+    return PreprocessJob.start(edges, gx, gy, depth, config)
 
 
 def frame_from_edges(
@@ -101,39 +107,60 @@ def frame_from_edges(
 ) -> Frame:
     """A Frame from an edge mask (H, W) uint8 (non-zero on edges), image gradients gx, gy
     (H, W) (read at edge pixels only) and depth (H, W) in metres."""
-    h, w = edges.shape
-    pts = cv2.findNonZero(edges)  # raster order: the order distanceTransform labels them
-    transform = None
-    if pts is not None:
-        # One pass gives both: a 5x5 chamfer L2 distance (within 0.08 px of the exact one
-        # inside the 5 px residual gate on TUM frames) and the nearest edge pixel per pixel.
-        # It is half of the preprocessing: a worker thread runs it (OpenCV releases the GIL)
-        # while this one gathers the edges' gradients and depths.
-        transform = _worker().submit(
-            cv2.distanceTransformWithLabels, cv2.bitwise_not(edges), cv2.DIST_L2,
-            cv2.DIST_MASK_5, labelType=cv2.DIST_LABEL_PIXEL,
-        )
-    pts = np.zeros((0, 2), np.int32) if pts is None else pts.reshape(-1, 2)
-    us, vs = pts[:, 0], pts[:, 1]
-    flat = vs * w + us
-    egx = np.take(gx.ravel(), flat).astype(np.float32)
-    egy = np.take(gy.ravel(), flat).astype(np.float32)
-    mag = np.hypot(egx, egy)
-    grad = np.stack([egx, egy], axis=-1) / np.maximum(mag, 1e-6)[:, None]
-    if transform is not None:
-        dist0, labels = transform.result()
-        nearest_grad = nearest_edge_map(grad, labels)
-    else:  # no edge at all: every distance is "far"; the tracker reports the frame lost
-        dist0 = np.full((h, w), float(h + w), np.float32)
-        nearest_grad = np.zeros((h, w, 2), np.int8)
-    d = np.take(depth.ravel(), flat).astype(np.float32)
-    d = np.where(np.isfinite(d) & (d >= config.min_depth) & (d <= config.max_depth), d, 0.0)
-    return Frame(
-        edge_uv=np.stack([us, vs], axis=-1).astype(np.float32),
-        edge_grad=grad.astype(np.float32),
-        edge_mag=mag.astype(np.float32),
-        edge_depth=d.astype(np.float32),
-        dist=distance_pyramid(dist0, config.num_levels),
-        nearest_grad=nearest_grad,
-    )
+    return PreprocessJob.start(edges, gx, gy, depth, config).finish()
 
+
+@dataclass(frozen=True)
+class PreprocessJob:
+    """A frame whose distance transform runs on the worker thread (it is half of the
+    preprocessing; OpenCV releases the GIL, so the caller's thread can work meanwhile)."""
+
+    edges: np.ndarray
+    gx: np.ndarray
+    gy: np.ndarray
+    depth: np.ndarray
+    config: Config
+    pts: np.ndarray  # (N, 2) int32 edge pixels in raster order
+    transform: Future | None
+
+    @classmethod
+    def start(cls, edges, gx, gy, depth, config: Config) -> PreprocessJob:
+        """Find the edge pixels and launch the labelled distance transform."""
+        pts = cv2.findNonZero(edges)  # raster order: the order distanceTransform labels them
+        transform = None
+        if pts is not None:
+            # One pass gives both: a 5x5 chamfer L2 distance (within 0.08 px of the exact one
+            # inside the 5 px residual gate on TUM frames) and the nearest edge of each pixel.
+            transform = _worker().submit(
+                cv2.distanceTransformWithLabels, cv2.bitwise_not(edges), cv2.DIST_L2,
+                cv2.DIST_MASK_5, labelType=cv2.DIST_LABEL_PIXEL,
+            )
+        pts = np.zeros((0, 2), np.int32) if pts is None else pts.reshape(-1, 2)
+        return cls(edges, gx, gy, depth, config, pts, transform)
+
+    def finish(self) -> Frame:
+        """Gather the edges' gradients and depths, wait for the transform, build the Frame."""
+        h, w = self.edges.shape
+        us, vs = self.pts[:, 0], self.pts[:, 1]
+        flat = vs * w + us
+        egx = np.take(self.gx.ravel(), flat).astype(np.float32)
+        egy = np.take(self.gy.ravel(), flat).astype(np.float32)
+        mag = np.hypot(egx, egy)
+        grad = np.stack([egx, egy], axis=-1) / np.maximum(mag, 1e-6)[:, None]
+        if self.transform is not None:
+            dist0, labels = self.transform.result()
+            nearest_grad = nearest_edge_map(grad, labels)
+        else:  # no edge at all: every distance is "far"; the tracker reports the frame lost
+            dist0 = np.full((h, w), float(h + w), np.float32)
+            nearest_grad = np.zeros((h, w, 2), np.int8)
+        cfg = self.config
+        d = np.take(self.depth.ravel(), flat).astype(np.float32)
+        d = np.where(np.isfinite(d) & (d >= cfg.min_depth) & (d <= cfg.max_depth), d, 0.0)
+        return Frame(
+            edge_uv=self.pts.astype(np.float32),
+            edge_grad=grad.astype(np.float32),
+            edge_mag=mag.astype(np.float32),
+            edge_depth=d.astype(np.float32),
+            dist=distance_pyramid(dist0, cfg.num_levels),
+            nearest_grad=nearest_grad,
+        )

@@ -1,11 +1,14 @@
 """Running the tracker over a whole TUM sequence: decoding, pipelining, trajectory file,
 progress bar and the run's statistics.
 
-Frame i is decoded, frame i-1 submitted to the device, frame i pre-processed on the host while
-that solve runs (JAX dispatch is asynchronous and OpenCV releases the GIL), then frame i-1
-completed. The solve overlaps preprocessing only, never decoding, so the reported per-frame
-time (decoding excluded) is what a live camera would see. Tracking results are identical to
-the synchronous ``Odometry.track``: preprocessing does not depend on the tracking state.
+Frame i is decoded, frame i-1 submitted to the device, frame i's edges found and its distance
+transform started on a worker thread; frame i-1 is completed (its solve result read back,
+keyframe decision and edge selection) while that transform runs, then frame i's
+preprocessing finished. JAX dispatch is asynchronous and OpenCV releases the GIL, so the two
+cores share the work. The solve overlaps preprocessing only, never decoding, so the reported
+per-frame time (decoding excluded) is what a live camera would see. Tracking results are
+identical to the synchronous ``Odometry.track``: preprocessing does not depend on the tracking
+state.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ from .config import Config
 from .datasets.tum import TumSequence, groundtruth_pose_at
 from .io import TrajectoryWriter, matrices_to_poses7, poses7_to_matrices
 from .metrics import ate, rpe
-from .preprocess import preprocess
+from .preprocess import start_preprocess
 from .tracker import LOST, FrameResult, Odometry
 
 
@@ -101,12 +104,18 @@ def run_sequence(
                 run.decode_ms.append(decode_s * 1e3)
             # submit after decoding, so that the solve overlaps preprocessing only
             pending = odo.submit(*ready[:2], preprocess_ms=ready[2]) if ready else None
+            job, pre_s = None, 0.0
             if i < n:
                 t1 = time.perf_counter()
-                frame = preprocess(*seq.rectify_frame(rgb, raw_depth), config)
-                ready = (frame, float(seq.timestamps[i]), (time.perf_counter() - t1) * 1e3)
-            if pending is not None:
-                _record(run, odo.complete(pending), writer)
+                job = start_preprocess(*seq.rectify_frame(rgb, raw_depth), config)
+                pre_s = time.perf_counter() - t1
+            result = odo.complete(pending) if pending is not None else None  # meanwhile: DT
+            if job is not None:
+                t2 = time.perf_counter()
+                ready = (job.finish(), float(seq.timestamps[i]),
+                         (pre_s + time.perf_counter() - t2) * 1e3)
+            if result is not None:
+                _record(run, result, writer)
                 now = time.perf_counter()
                 period_ms = (now - t_prev - decode_s) * 1e3
                 run.frame_ms.append(period_ms)
