@@ -562,6 +562,15 @@ def _progress(k: int, total: int, row: dict[str, Any], seconds: float) -> str:
             f"peak {_fmt(row.get('peak_rss_mib'), '.0f')} MiB ({seconds:.1f} s)")
 
 
+def _cv2_odometry() -> bool | None:
+    """Whether this OpenCV has cv2.Odometry (None without OpenCV)."""
+    try:
+        import cv2
+    except ImportError:
+        return None
+    return hasattr(cv2, "Odometry")
+
+
 def main(argv: list[str] | None = None,
          progress: Callable[[str], None] | None = None) -> int:
     """Entry point: run the benchmark (or, with ``--one``, one method as a child)."""
@@ -629,11 +638,3 @@ def main(argv: list[str] | None = None,
 if __name__ == "__main__":
     raise SystemExit(main())
 
-
-def _cv2_odometry() -> bool | None:
-    """Whether this OpenCV has cv2.Odometry (None without OpenCV)."""
-    try:
-        import cv2
-    except ImportError:
-        return None
-    return hasattr(cv2, "Odometry")
