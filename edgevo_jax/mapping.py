@@ -1,0 +1,573 @@
+"""Sliding-window joint refinement (EdgeVO's local mapping, after DSO): keyframe poses, the
+inverse depths of the active edges and the intrinsics, with the depths eliminated by the Schur
+complement, and a keyframe leaving the window through marginalisation into a Gaussian prior.
+
+Residual of active edge p hosted by keyframe i, seen by keyframe j != i (c = fx, fy, cx, cy,
+shared by back-projection and projection):
+
+    r = D_j(pi_c(T_j_w T_w_i pi_c^-1(p, rho_p)))
+
+Variables and their updates:
+- poses: T_w_k <- exp(xi_k) T_w_k, xi_k = [v, w], a LEFT twist in the WORLD frame; a global
+  rigid motion is then xi_k = g for every k, so the pose gauge is the direction [g, ..., g, 0];
+- inverse depths: rho_p <- rho_p + d_p;  intrinsics: c <- c + d_c.
+Camera vector (m = 6 n + 4): [xi_0, ..., xi_{n-1}, fx, fy, cx, cy]. Point vector (n A,):
+host-major, edge a of keyframe k at k A + a.
+
+Energy E = sum Huber(r) + prior (Huber(r) = r^2 / 2 inside the radius, so E = 0.5 sum w r^2
+with IRLS weights w); normal equations H = J^T W J, b = J^T W r; Levenberg-Marquardt step
+(H + lam diag H) delta = -b. Residuals out of the image, behind the camera or above the gate
+get weight 0 and, in the cost, the Huber cost of the gate (rejecting never lowers the cost).
+
+Gauge: the energy is invariant to a global rigid motion and, since nothing measures depth
+here, to a global scale (translations times s, inverse depths over s). ``refine`` holds the
+pose of keyframe ``gauge_index`` (default 0, the oldest) fixed, and with ``fix_scale`` removes
+from every step its component along the scale direction about that keyframe's centre (as DSO's
+null-space orthogonalisation), so the scale of the initial estimate (from the depth sensor) is
+kept.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import jaxlie
+import numpy as np
+
+from .camera import Intrinsics, project, unproject
+from .config import Config
+from .geometry import transform_points
+from .interp import bilinear, bilinear_with_grad
+from .residuals import gradient_consistent
+from .robust import huber_cost, huber_weights
+
+
+class WindowProblem(NamedTuple):
+    """The window of n keyframes with up to A active edges each (struct of arrays).
+
+    poses (n, 4, 4) T_w_k; uv (n, 2, A) level-0 pixels of each keyframe's hosted edges;
+    rho (n, A) their inverse depths (1/m); valid (n, A) bool (padding slots False);
+    fields (n, H, W) level-0 distance fields (pixels); intrinsics (4,) fx, fy, cx, cy.
+    Optional, for EdgeVO's gradient-consistency test (a match counts only where
+    g(p) . g(p') >= eta, p' the nearest edge to the projection): grad (n, 2, A) the hosted
+    edges' normalised image gradients and nearest_grad (n, H, W, 2) int8 each keyframe's
+    nearest-edge gradient map (preprocess.Frame.nearest_grad). None: no such test.
+    """
+
+    poses: jnp.ndarray
+    uv: jnp.ndarray
+    rho: jnp.ndarray
+    valid: jnp.ndarray
+    fields: jnp.ndarray
+    intrinsics: jnp.ndarray
+    grad: jnp.ndarray | None = None
+    nearest_grad: jnp.ndarray | None = None
+
+    @property
+    def camera(self) -> Intrinsics:
+        """The intrinsics as a camera.Intrinsics of scalars."""
+        c = self.intrinsics
+        return Intrinsics(c[0], c[1], c[2], c[3])
+
+
+class Prior(NamedTuple):
+    """Gaussian prior 0.5 dx^T H dx + b^T dx on the camera vector of a window (m = 6 n + 4).
+
+    dx is the tangent-space offset of the current estimate from the linearisation point:
+    dx_k = log(T_w_k T0_w_k^-1) (left, world frame) for each pose, dx_c = c - c0 for the
+    intrinsics. H (m, m) and b (m,) come from marginalisation; poses (n, 4, 4) and
+    intrinsics (4,) are the linearisation point; mask (m,) bool: the variables it constrains
+    (H and b are zero elsewhere).
+    """
+
+    H: jnp.ndarray
+    b: jnp.ndarray
+    poses: jnp.ndarray
+    intrinsics: jnp.ndarray
+    mask: jnp.ndarray
+
+
+class MappingConfig(NamedTuple):
+    """The numbers of the window refinement (hashable: a jit static argument).
+
+    iterations: Levenberg-Marquardt tries; huber_delta, max_residual: Huber radius and gate
+    (level-0 pixels); lambda_init: initial lam of (H + lam diag H); gauge_index: the keyframe
+    whose pose is held fixed; fix_scale: project the scale direction out of every step;
+    step_tol: stop once a step's norm is below it; min_rho: floor of updated inverse depths;
+    refine_depths, refine_intrinsics: which variables move (poses always do);
+    warmup_iterations: pose-only tries before the joint ones (see ``refine``); eta: the
+    gradient-consistency threshold (used when the problem carries gradients).
+    """
+
+    iterations: int = 10
+    huber_delta: float = 1.0
+    max_residual: float = 5.0
+    lambda_init: float = 1e-4
+    gauge_index: int = 0
+    fix_scale: bool = True
+    step_tol: float = 1e-8
+    min_rho: float = 1e-3
+    refine_depths: bool = True
+    refine_intrinsics: bool = True
+    warmup_iterations: int = 0
+    eta: float = 0.6
+
+    @classmethod
+    def from_config(cls, config: Config, **changes: object) -> MappingConfig:
+        """Huber radius and gate from Config's level 0 (huber_delta[0], max_residual[0]) and
+        its eta; other fields from ``changes`` or the defaults."""
+        base = cls(huber_delta=float(config.huber_delta[0]),
+                   max_residual=float(config.max_residual[0]), eta=float(config.eta))
+        return base._replace(**changes)
+
+
+class NormalEquations(NamedTuple):
+    """Blocks of the Gauss-Newton system of the window (see the module doc for the layouts).
+
+    H_cc (m, m) camera block; H_cp (m, n A) camera-depth block; h_pp (n A,) the diagonal
+    depth block; b_c (m,), b_p (n A,) gradients J^T W r; cost: the robust energy; count: the
+    number of inlier residuals; mask (n, n-1, A): which (``EdgeResiduals`` layout).
+    """
+
+    H_cc: jnp.ndarray
+    H_cp: jnp.ndarray
+    h_pp: jnp.ndarray
+    b_c: jnp.ndarray
+    b_p: jnp.ndarray
+    cost: jnp.ndarray
+    count: jnp.ndarray
+    mask: jnp.ndarray
+
+
+class EdgeResiduals(NamedTuple):
+    """Residuals of every (target j, s-th other keyframe i = pair_hosts(n)[j, s], edge a),
+    shaped (n, n-1, A), with their Jacobians: J_rho (n, n-1, A) w.r.t. the host edge's inverse
+    depth, J_xi (6, n, n-1, A) w.r.t. the HOST pose twist xi_i (the target's is exactly
+    -J_xi, world-frame left twists), J_c (4, n, n-1, A) w.r.t. fx, fy, cx, cy; considered:
+    valid host slot; ok: also in view, in front of the camera and finite; consistent: the
+    gradient test passes (all True when the problem carries no gradients)."""
+
+    r: jnp.ndarray
+    J_rho: jnp.ndarray
+    J_xi: jnp.ndarray
+    J_c: jnp.ndarray
+    considered: jnp.ndarray
+    ok: jnp.ndarray
+    consistent: jnp.ndarray
+
+
+def pair_hosts(n: int) -> np.ndarray:
+    """Static (n, n-1) table: row j lists the keyframes other than j (the hosts it sees)."""
+    return np.array([[i for i in range(n) if i != j] for j in range(n)], np.int32).reshape(
+        n, n - 1
+    )
+
+
+def _as_mapping_config(config: MappingConfig | Config) -> MappingConfig:
+    return config if isinstance(config, MappingConfig) else MappingConfig.from_config(config)
+
+
+def _rot(R: jnp.ndarray, P: jnp.ndarray) -> jnp.ndarray:
+    """R @ P with R (..., 3, 3) broadcast against P (3, ..., A) over its middle axes."""
+    return jnp.stack([sum(R[..., i, k, None] * P[k] for k in range(3)) for i in range(3)])
+
+
+def _rot_t(R: jnp.ndarray, P: jnp.ndarray) -> jnp.ndarray:
+    """R^T @ P, shapes as in ``_rot``."""
+    return jnp.stack([sum(R[..., k, i, None] * P[k] for k in range(3)) for i in range(3)])
+
+
+def edge_residual(
+    field_j: jnp.ndarray, intrinsics: jnp.ndarray, T_w_i: jnp.ndarray, T_w_j: jnp.ndarray,
+    uv: jnp.ndarray, rho: jnp.ndarray,
+) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """The definition r = D_j(pi_c(T_j_w T_w_i pi_c^-1(p, rho))) for edges uv (2, K), rho (K,)
+    hosted by i and seen by j; returns r (K,) and the in-view-and-in-front mask. (Reference
+    for the analytic Jacobians; the solver uses ``edge_residuals``.)"""
+    c = Intrinsics(intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3])
+    T_j_i = jaxlie.SE3.from_matrix(T_w_j).inverse() @ jaxlie.SE3.from_matrix(T_w_i)
+    pts = transform_points(T_j_i, unproject(c, uv, rho))
+    r, inside = bilinear(field_j, project(c, pts))
+    return r, inside & (pts[2] > 1e-6)
+
+
+def edge_residuals(problem: WindowProblem, eta: float = 0.6) -> EdgeResiduals:
+    """Residuals of every active edge in every other keyframe, with analytic Jacobians.
+
+    With P_i = pi^-1(p, rho) (host), P_w = T_w_i P_i, P_j = T_j_w P_w and a = grad D_j .
+    d pi / dP (at P_j): dr/dxi_i = [R_w_j a, P_w x R_w_j a], dr/dxi_j = -dr/dxi_i,
+    dr/drho = -(R_i_j a) . P_i / rho, dr/dc = grad D_j . d pi/dc + (R_i_j a) . dP_i/dc.
+    """
+    n, _, A = problem.uv.shape
+    hosts = pair_hosts(n)
+    fx, fy, cx, cy = (problem.intrinsics[k] for k in range(4))
+    rho = jnp.where(problem.valid, problem.rho, 1.0)
+    z = 1.0 / rho
+    P_i = jnp.stack([(problem.uv[:, 0] - cx) / fx * z, (problem.uv[:, 1] - cy) / fy * z, z])
+    R_w, t_w = problem.poses[:, :3, :3], problem.poses[:, :3, 3]
+    P_w = _rot(R_w, P_i) + t_w.T[:, :, None]  # (3, n, A)
+    # gather the hosts seen by each target: (3, n, n-1, A)
+    Pi_t, Pw_t = P_i[:, hosts], P_w[:, hosts]
+    R_j = R_w[:, None]  # (n, 1, 3, 3): R_w_j of each target
+    P_j = _rot_t(R_j, Pw_t - t_w.T[:, :, None, None])
+    Z = P_j[2]
+    front = Z > 1e-6
+    iz = 1.0 / jnp.where(front, Z, 1.0)
+    uv_j = jnp.stack([fx * P_j[0] * iz + cx, fy * P_j[1] * iz + cy])  # (2, n, n-1, A)
+    flat = uv_j.reshape(2, n, (n - 1) * A).transpose(1, 0, 2)
+    r, grad, inside = jax.vmap(bilinear_with_grad)(problem.fields, flat)
+    r = r.reshape(n, n - 1, A)
+    grad = grad.transpose(1, 0, 2).reshape(2, n, n - 1, A)
+    inside = inside.reshape(n, n - 1, A)
+    ax, ay = grad[0] * fx * iz, grad[1] * fy * iz
+    a = jnp.stack([ax, ay, -(ax * P_j[0] + ay * P_j[1]) * iz])  # dr/dP_j
+    aw = _rot(R_j, a)  # dr/dP_w
+    J_w = jnp.stack([Pw_t[1] * aw[2] - Pw_t[2] * aw[1], Pw_t[2] * aw[0] - Pw_t[0] * aw[2],
+                     Pw_t[0] * aw[1] - Pw_t[1] * aw[0]])
+    J_xi = jnp.concatenate([aw, J_w])
+    ai = _rot_t(R_w[hosts], aw)  # dr/dP_i
+    rho_t = rho[hosts]
+    J_rho = -(ai[0] * Pi_t[0] + ai[1] * Pi_t[1] + ai[2] * Pi_t[2]) / rho_t
+    J_c = jnp.stack([
+        grad[0] * P_j[0] * iz - ai[0] * Pi_t[0] / fx,
+        grad[1] * P_j[1] * iz - ai[1] * Pi_t[1] / fy,
+        grad[0] - ai[0] * Pi_t[2] / fx,
+        grad[1] - ai[1] * Pi_t[2] / fy,
+    ])
+    considered = problem.valid[hosts]
+    ok = considered & inside & front & jnp.isfinite(r)
+    consistent = jnp.ones_like(ok)
+    if problem.grad is not None and problem.nearest_grad is not None:
+        g_host = jnp.moveaxis(problem.grad[hosts], 2, 0).reshape(2, n, (n - 1) * A)
+        consistent = jax.vmap(gradient_consistent, in_axes=(1, 0, 0, None))(
+            g_host, problem.nearest_grad, flat, eta).reshape(n, n - 1, A)
+    return EdgeResiduals(r, J_rho, J_xi, J_c, considered, ok, consistent)
+
+
+def _robust_cost(e: EdgeResiduals, considered: jnp.ndarray, mask: jnp.ndarray,
+                 cfg: MappingConfig) -> jnp.ndarray:
+    """Huber cost of the residuals in ``mask``, the gate's Huber cost for every other
+    considered one (so that rejecting a residual never lowers the cost). A residual of the
+    mask that has left the image keeps the clamped field value (the cost stays continuous
+    for a fixed mask)."""
+    inl = mask & considered & jnp.isfinite(e.r)
+    gate_cost = huber_cost(jnp.asarray(cfg.max_residual, e.r.dtype), cfg.huber_delta)
+    return jnp.sum(jnp.where(inl, huber_cost(jnp.where(inl, e.r, 0.0), cfg.huber_delta),
+                             jnp.where(considered, gate_cost, 0.0)))
+
+
+def _blocks(e: EdgeResiduals, considered: jnp.ndarray, mask: jnp.ndarray,
+            cfg: MappingConfig) -> NormalEquations:
+    """The normal-equation blocks of the residuals in ``mask`` (see ``normal_equations``)."""
+    n, _, A = e.r.shape
+    ht = pair_hosts(n)
+    tt = np.repeat(np.arange(n, dtype=np.int32)[:, None], n - 1, axis=1)
+    r = jnp.where(mask, e.r, 0.0)
+    w = jnp.where(mask, huber_weights(r, cfg.huber_delta), 0.0)
+    J_rho = jnp.where(mask, e.J_rho, 0.0)
+    J_xi = jnp.where(mask, e.J_xi, 0.0)
+    J_c = jnp.where(mask, e.J_c, 0.0)
+    wJx, wJc, wJr = w * J_xi, w * J_c, w * J_rho
+    # per pair sums, then static incidence tables instead of scatters: S[j, s, k] = 1 where
+    # keyframe k hosts pair (j, s); D = S - (k is its target) carries dr/dxi_j = -dr/dxi_i
+    S = (ht[:, :, None] == np.arange(n)).astype(np.float64)
+    D = S - (tt[:, :, None] == np.arange(n))
+    S, D = jnp.asarray(S, r.dtype), jnp.asarray(D, r.dtype)
+    Hxx = jnp.einsum("kjsa,ljsa->jskl", wJx, J_xi)  # (n, n-1, 6, 6)
+    Hxc = jnp.einsum("kjsa,ljsa->jskl", wJx, J_c)  # (n, n-1, 6, 4)
+    Hpose = jnp.einsum("jsp,jsq,jskl->pkql", D, D, Hxx).reshape(6 * n, 6 * n)
+    Hpc = jnp.einsum("jsp,jskl->pkl", D, Hxc).reshape(6 * n, 4)
+    Hcc = jnp.einsum("kjsa,ljsa->kl", wJc, J_c)
+    H_cc = jnp.block([[Hpose, Hpc], [Hpc.T, Hcc]])
+    b_pose = jnp.einsum("jsp,kjsa,jsa->pk", D, wJx, r).reshape(-1)
+    b_c = jnp.concatenate([b_pose, jnp.einsum("kjsa,jsa->k", wJc, r)])
+    Hxp = jnp.einsum("jsp,jsh,kjsa->pkha", D, S, wJx * J_rho).reshape(6 * n, n * A)
+    Hcp = jnp.einsum("jsh,kjsa->kha", S, wJc * J_rho).reshape(4, n * A)
+    H_cp = jnp.concatenate([Hxp, Hcp])
+    h_pp = jnp.einsum("jsh,jsa->ha", S, wJr * J_rho).reshape(-1)
+    b_p = jnp.einsum("jsh,jsa->ha", S, wJr * r).reshape(-1)
+    cost = _robust_cost(e, considered, mask, cfg)
+    return NormalEquations(H_cc, H_cp, h_pp, b_c, b_p, cost, jnp.sum(mask), mask)
+
+
+def _considered(e: EdgeResiduals, hosts: jnp.ndarray | None) -> jnp.ndarray:
+    n = e.r.shape[0]
+    return e.considered if hosts is None else e.considered & hosts[pair_hosts(n)][:, :, None]
+
+
+def _inliers(e: EdgeResiduals, considered: jnp.ndarray, cfg: MappingConfig) -> jnp.ndarray:
+    return considered & e.ok & e.consistent & (e.r <= cfg.max_residual)
+
+
+def normal_equations(
+    problem: WindowProblem, config: MappingConfig | Config, *,
+    hosts: jnp.ndarray | None = None, mask: jnp.ndarray | None = None,
+) -> NormalEquations:
+    """Huber-weighted Gauss-Newton blocks of the window at the current estimate.
+
+    The inliers: valid, in view, in front, gradient-consistent (if the problem has gradients)
+    and under the gate; or, if ``mask`` (n, n-1, A) is given, those of its residuals still
+    in view (a fixed inlier set: ``refine`` judges a step with the set of the point it starts
+    from, so that the cost it compares is continuous). hosts (n,) bool, optional: only the
+    residuals of edges hosted by these keyframes count (``marginalize_keyframe``).
+    Fixed shapes; the per-pair sums go into the blocks through static incidence tables (no
+    scatter); the dense full Hessian is never formed.
+    """
+    cfg = _as_mapping_config(config)
+    e = edge_residuals(problem, cfg.eta)
+    considered = _considered(e, hosts)
+    inl = _inliers(e, considered, cfg) if mask is None else mask & considered & e.ok
+    return _blocks(e, considered, inl, cfg)
+
+
+def schur_solve(
+    H_cc: jnp.ndarray, H_cp: jnp.ndarray, h_pp: jnp.ndarray, b_c: jnp.ndarray,
+    b_p: jnp.ndarray, damping: float | jnp.ndarray, *, min_h: float = 1e-12,
+) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """Solve (H + damping diag(H)) delta = -b for H = [[H_cc, H_cp], [H_cp^T, diag(h_pp)]]
+    by eliminating the diagonal depth block (Schur complement):
+
+        S = A_cc - H_cp D^-1 H_cp^T,  S delta_c = -(b_c - H_cp D^-1 b_p),
+        delta_p = -D^-1 (b_p + H_cp^T delta_c),
+
+    with A_cc = H_cc + damping diag(H_cc), D = (1 + damping) h_pp. Depths with D <= min_h
+    (padding slots, unobserved edges; their H_cp columns are then zero too) get delta 0.
+    """
+    d = (1.0 + damping) * h_pp
+    seen = d > min_h
+    inv = jnp.where(seen, 1.0 / jnp.where(seen, d, 1.0), 0.0)
+    A_cc = H_cc + damping * jnp.diag(jnp.diag(H_cc))
+    W = H_cp * inv
+    S = A_cc - W @ H_cp.T
+    S = 0.5 * (S + S.T)
+    delta_c = -jnp.linalg.solve(S, b_c - W @ b_p)
+    delta_p = -inv * (b_p + H_cp.T @ delta_c)
+    return delta_c, delta_p
+
+
+def _index(idx: np.ndarray | jnp.ndarray, size: int) -> np.ndarray:
+    idx = np.asarray(idx)
+    if idx.dtype == bool:
+        if idx.shape != (size,):
+            raise ValueError(f"a boolean index needs shape ({size},), got {idx.shape}")
+        return np.flatnonzero(idx)
+    return idx.astype(np.int64).reshape(-1)
+
+
+def marginalize(
+    H: jnp.ndarray, b: jnp.ndarray, keep: np.ndarray, drop: np.ndarray, *,
+    rtol: float | None = None,
+) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """Schur complement of the quadratic 0.5 x^T H x + b^T x onto the kept variables:
+
+        H' = H_kk - H_kd H_dd^+ H_dk,   b' = b_k - H_kd H_dd^+ b_d.
+
+    keep, drop: static index arrays (or boolean masks) into H (the result follows keep's
+    order). H_dd^+ is the pseudo-inverse of the Jacobi-scaled block (eigenvalues under rtol
+    times the largest treated as zero; rtol defaults to jnp.linalg.pinv's), so a singular
+    H_dd (padding slots, unobserved depths: zero rows) contributes nothing along its null
+    space. Dense: O(k d + d^3).
+    """
+    size = H.shape[0]
+    keep, drop = _index(keep, size), _index(drop, size)
+    H = 0.5 * (H + H.T)
+    Hkk, Hkd, Hdd = H[np.ix_(keep, keep)], H[np.ix_(keep, drop)], H[np.ix_(drop, drop)]
+    dg = jnp.diag(Hdd)
+    s = jnp.where(dg > 0, 1.0 / jnp.sqrt(jnp.where(dg > 0, dg, 1.0)), 0.0)
+    Hdd_inv = s[:, None] * jnp.linalg.pinv(s[:, None] * Hdd * s[None, :], rtol=rtol,
+                                           hermitian=True) * s[None, :]
+    K = Hkd @ Hdd_inv
+    Hm = Hkk - K @ Hkd.T
+    return 0.5 * (Hm + Hm.T), b[keep] - K @ b[drop]
+
+
+def _tangent_offset(poses: jnp.ndarray, intrinsics: jnp.ndarray, prior: Prior) -> jnp.ndarray:
+    """dx (m,) of the estimate from the prior's linearisation point, zero off its mask."""
+    T = jaxlie.SE3.from_matrix(poses)
+    T0 = jaxlie.SE3.from_matrix(prior.poses)
+    dx = jnp.concatenate([(T @ T0.inverse()).log().reshape(-1), intrinsics - prior.intrinsics])
+    return jnp.where(prior.mask, dx, 0.0)
+
+
+def prior_terms(
+    poses: jnp.ndarray, intrinsics: jnp.ndarray, prior: Prior
+) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
+    """The prior's (H, gradient H dx + b, cost 0.5 dx^T H dx + b^T dx) at the estimate.
+
+    First-estimate Jacobians: H is the one from marginalisation (never relinearised) and
+    d dx / d xi is taken as the identity (dx stays small inside the window)."""
+    dx = _tangent_offset(poses, intrinsics, prior)
+    Hdx = prior.H @ dx
+    return prior.H, Hdx + prior.b, 0.5 * dx @ Hdx + prior.b @ dx
+
+
+def _with_prior(ne: NormalEquations, problem: WindowProblem, prior: Prior | None):
+    if prior is None:
+        return ne
+    H, g, cost = prior_terms(problem.poses, problem.intrinsics, prior)
+    return ne._replace(H_cc=ne.H_cc + H, b_c=ne.b_c + g, cost=ne.cost + cost)
+
+
+def _scale_direction(problem: WindowProblem, gauge_index: int) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """Tangent of the global scaling about keyframe gauge_index's centre: translations
+    t_k - t_g (rotations 0), inverse depths -rho, intrinsics 0."""
+    n = problem.poses.shape[0]
+    t = problem.poses[:, :3, 3]
+    v_pose = jnp.concatenate([t - t[gauge_index], jnp.zeros((n, 3), t.dtype)], axis=1)
+    v_c = jnp.concatenate([v_pose.reshape(-1), jnp.zeros(4, t.dtype)])
+    v_p = jnp.where(problem.valid, -problem.rho, 0.0).reshape(-1)
+    return v_c, v_p
+
+
+def _apply(problem: WindowProblem, delta_c: jnp.ndarray, delta_p: jnp.ndarray,
+           min_rho: float) -> WindowProblem:
+    n, _, A = problem.uv.shape
+    T = jaxlie.SE3.exp(delta_c[: 6 * n].reshape(n, 6)) @ jaxlie.SE3.from_matrix(problem.poses)
+    rho = jnp.where(problem.valid,
+                    jnp.maximum(problem.rho + delta_p.reshape(n, A), min_rho), problem.rho)
+    return problem._replace(poses=T.as_matrix(), rho=rho,
+                            intrinsics=problem.intrinsics + delta_c[6 * n:])
+
+
+def refine(
+    problem: WindowProblem, config: MappingConfig | Config, prior: Prior | None = None,
+    iterations: int | None = None,
+) -> tuple[WindowProblem, dict[str, jnp.ndarray]]:
+    """Levenberg-Marquardt on the window's robust energy (plus ``prior``, if any).
+
+    Each iteration: the IRLS normal equations (``normal_equations``), the prior's terms
+    (first-estimate Jacobians: its H is kept from when it was made, its gradient is
+    H dx + b at the current offset dx, see ``prior_terms``), the pose of ``gauge_index``
+    held fixed (its rows and columns replaced by the identity), the Schur-complement solve
+    with lam diag(H) damping, the scale direction projected out (``fix_scale``), and the step
+    kept only if it lowers the energy judged with the inlier set of the point it starts from
+    (gating and the gradient test are steps in the cost: with the set re-decided inside the
+    comparison, LM stalls against them), then lam / 10 and a new inlier set, else lam x 10.
+    The first ``warmup_iterations`` tries move the poses alone (depths and intrinsics
+    frozen: the poses, fitted by all edges at once, converge from further away than one
+    edge's depth can, and the weakly observable intrinsics would absorb the depths' errors),
+    then ``iterations`` (argument, else the config's) joint ones. One lax.while_loop that
+    evaluates the residuals once per try; jit with ``config`` and ``iterations`` static.
+    Returns the refined problem (poses, rho, intrinsics) and stats: cost_before, cost_after
+    (robust energy with its own inlier set), inliers (count), iterations (tries).
+    """
+    cfg = _as_mapping_config(config)
+    iters = cfg.iterations if iterations is None else iterations
+    warm = cfg.warmup_iterations
+    n = problem.poses.shape[0]
+    m = 6 * n + 4
+    gauge = np.zeros(m, bool)
+    gauge[6 * cfg.gauge_index: 6 * cfg.gauge_index + 6] = True
+    pose_only = gauge.copy()
+    pose_only[6 * n:] = True
+    joint = gauge.copy()
+    joint[6 * n:] = not cfg.refine_intrinsics
+
+    def system(p: WindowProblem, prev_mask: jnp.ndarray):
+        """Blocks at p (own inliers, prior added) and the energy with prev_mask's inliers."""
+        e = edge_residuals(p, cfg.eta)
+        ne = _blocks(e, e.considered, _inliers(e, e.considered, cfg), cfg)
+        fixed_cost = _robust_cost(e, e.considered, prev_mask, cfg)
+        ne_p = _with_prior(ne, p, prior)
+        return ne_p, fixed_cost + (ne_p.cost - ne.cost)
+
+    def step(p: WindowProblem, ne: NormalEquations, lam: jnp.ndarray, joint_stage: jnp.ndarray):
+        fixed = jnp.where(joint_stage, jnp.asarray(joint), jnp.asarray(pose_only))
+        depths = joint_stage & cfg.refine_depths
+        free = ~fixed
+        H_cc = jnp.where(free[:, None] & free[None, :], ne.H_cc, 0.0) + jnp.diag(
+            fixed.astype(ne.H_cc.dtype))
+        H_cp = jnp.where(free[:, None] & depths, ne.H_cp, 0.0)
+        h_pp = jnp.where(depths, ne.h_pp, 0.0)  # zero depth rows: schur_solve gives delta 0
+        dc, dp = schur_solve(H_cc, H_cp, h_pp, jnp.where(free, ne.b_c, 0.0), ne.b_p, lam)
+        if cfg.fix_scale:
+            v_c, v_p = _scale_direction(p, cfg.gauge_index)
+            vv = v_c @ v_c + v_p @ v_p
+            alpha = (dc @ v_c + dp @ v_p) / jnp.where(vv > 0, vv, 1.0)
+            alpha = jnp.where(depths, alpha, 0.0)
+            dc, dp = dc - alpha * v_c, dp - alpha * v_p
+        ok = jnp.all(jnp.isfinite(dc)) & jnp.all(jnp.isfinite(dp))
+        return jnp.where(ok, dc, 0.0), jnp.where(ok, dp, 0.0)
+
+    def cond(state):
+        i, _, _, _, size, _ = state
+        return (i <= warm + iters) & ((size >= cfg.step_tol) | (i <= warm))
+
+    def body(state):
+        # try i = 0 evaluates the start; tries 1..warm move the poses alone
+        i, x, ne, lam, _, cost0 = state
+        p = problem._replace(poses=x[0], rho=x[1], intrinsics=x[2])
+        lam = jnp.where(i == warm + 1, cfg.lambda_init, lam)
+        dc, dp = step(p, ne, lam, i > warm)
+        dc, dp = jnp.where(i == 0, 0.0, dc), jnp.where(i == 0, 0.0, dp)
+        p_new = _apply(p, dc, dp, cfg.min_rho)
+        ne_new, cost_same_set = system(p_new, ne.mask)
+        better = cost_same_set < ne.cost
+        x_new = (p_new.poses, p_new.rho, p_new.intrinsics)
+        x, ne = jax.tree.map(lambda a, b: jnp.where(better, a, b), (x_new, ne_new), (x, ne))
+        lam = jnp.clip(jnp.where(better, lam * 0.1, lam * 10.0), 1e-7, 1e4)
+        # a converged warm-up must not end the loop before the joint tries
+        size = jnp.where((i == 0) | (i == warm), jnp.inf, jnp.sqrt(dc @ dc + dp @ dp))
+        return i + 1, x, ne, lam, size, jnp.where(i == 0, ne_new.cost, cost0)
+
+    dtype = problem.rho.dtype
+    n_, _, A_ = problem.uv.shape
+    shapes = jax.eval_shape(system, problem, jnp.zeros((n_, n_ - 1, A_), bool))[0]
+    ne0 = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+    ne0 = ne0._replace(cost=jnp.asarray(jnp.inf, shapes.cost.dtype))
+    x0 = (problem.poses, problem.rho, problem.intrinsics)
+    lam0 = jnp.asarray(cfg.lambda_init, dtype)
+    init = (jnp.asarray(0), x0, ne0, lam0, jnp.asarray(jnp.inf, dtype), ne0.cost)
+    i, x, ne, _, _, cost0 = jax.lax.while_loop(cond, body, init)
+    out = problem._replace(poses=x[0], rho=x[1], intrinsics=x[2])
+    stats = {"cost_before": cost0, "cost_after": ne.cost, "inliers": ne.count,
+             "iterations": i - 1}
+    return out, stats
+
+
+def remove_keyframe(problem: WindowProblem, index: int) -> WindowProblem:
+    """The window without keyframe ``index`` (static): the others keep their order."""
+    keep = np.array([k for k in range(problem.poses.shape[0]) if k != index])
+    def take(a):
+        return None if a is None else a[keep]
+
+    return WindowProblem(problem.poses[keep], problem.uv[keep], problem.rho[keep],
+                         problem.valid[keep], problem.fields[keep], problem.intrinsics,
+                         take(problem.grad), take(problem.nearest_grad))
+
+
+def marginalize_keyframe(
+    problem: WindowProblem, drop_index: int, config: MappingConfig | Config,
+    prior: Prior | None = None,
+) -> Prior:
+    """Prior on the remaining poses and the intrinsics left by marginalising keyframe
+    ``drop_index``'s pose and the inverse depths of the edges it hosts.
+
+    The dense linear system (camera vector plus the dropped keyframe's A depths) is built at
+    the current estimate from the residuals of the dropped keyframe's edges in every other
+    keyframe, plus the previous ``prior`` (H kept, gradient H dx + b); the residuals of other
+    keyframes' edges seen in the dropped keyframe are discarded, as in DSO (marginalising them
+    would couple the remaining depths into the prior). Then ``marginalize`` (Schur complement,
+    Jacobi-scaled pseudo-inverse). Linearised once, here: the returned prior's H is the
+    first-estimate one. The result is in the layout of ``remove_keyframe(problem,
+    drop_index)`` (its linearisation point: the current remaining poses and intrinsics).
+    Cost: O((6 n + 4 + A)^2) memory and O((6 + A)^3) for the pseudo-inverse, once per
+    dropped keyframe (A = 256: well under a millisecond of flops).
+    """
+    n, _, A = problem.uv.shape
+    m = 6 * n + 4
+    hosts = jnp.arange(n) == drop_index
+    ne = _with_prior(normal_equations(problem, config, hosts=hosts), problem, prior)
+    cols = slice(drop_index * A, (drop_index + 1) * A)
+    Hcp = ne.H_cp[:, cols]
+    H = jnp.block([[ne.H_cc, Hcp], [Hcp.T, jnp.diag(ne.h_pp[cols])]])
+    b = jnp.concatenate([ne.b_c, ne.b_p[cols]])
+    pose = np.arange(6 * drop_index, 6 * drop_index + 6)
+    keep = np.setdiff1d(np.arange(m), pose)
+    drop = np.concatenate([pose, m + np.arange(A)])
+    Hm, bm = marginalize(H, b, keep, drop)
+    rest = remove_keyframe(problem, drop_index)
+    return Prior(H=Hm, b=bm, poses=rest.poses, intrinsics=rest.intrinsics,
+                 mask=jnp.ones(m - 6, bool))
