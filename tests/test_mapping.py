@@ -19,10 +19,12 @@ from edgevo_jax.datasets import load_sequence
 from edgevo_jax.mapping import (
     MappingConfig,
     WindowProblem,
+    append_keyframe_to_prior,
     edge_residual,
     edge_residuals,
     marginalize,
     marginalize_keyframe,
+    no_prior,
     normal_equations,
     pair_hosts,
     refine,
@@ -159,10 +161,9 @@ def small_problem(rng: np.random.Generator, n: int = 3, A: int = 24) -> WindowPr
 def packed_residual(x, field_j, c, T_w_i, T_w_j, uv, rho):
     """r(x) of one edge (uv (2,), rho) hosted by i and seen by j, x = (d rho, xi_i, xi_j, d c)
     (17,): the definition, through jaxlie's exp (world-frame left twists)."""
-    T_i = jaxlie.SE3.exp(x[1:7]) @ jaxlie.SE3.from_matrix(T_w_i)
-    T_j = jaxlie.SE3.exp(x[7:13]) @ jaxlie.SE3.from_matrix(T_w_j)
-    val, _ = edge_residual(field_j, c + x[13:], T_i.as_matrix(), T_j.as_matrix(), uv[:, None],
-                           (rho + x[0])[None])
+    T_i = jaxlie.SE3.exp(x[1:7]).as_matrix() @ T_w_i
+    T_j = jaxlie.SE3.exp(x[7:13]).as_matrix() @ T_w_j
+    val, _ = edge_residual(field_j, c + x[13:], T_i, T_j, uv[:, None], (rho + x[0])[None])
     return val[0]
 
 
@@ -258,14 +259,17 @@ def test_mapping_config_from_config_reads_level_0():
 
 # --- 4. a window rendered from a real depth frame -------------------------------------------
 
-# T_w_k of 5 keyframes, twists [v (m), w (rad)]: 4-8 cm and 5-9 degrees from keyframe 0
+# T_w_k of 6 keyframes, twists [v (m), w (rad)]: 4-9 cm and 5-9 degrees from keyframe 0.
+# The window is keyframes 0-4; keyframe 5 enters when keyframe 0 is marginalised.
 TWISTS = np.array([
     [0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
     [0.04, -0.01, 0.03, 0.02, -0.03, 0.04],
     [-0.03, 0.03, -0.02, -0.03, 0.02, -0.05],
     [0.02, 0.04, 0.05, 0.04, 0.03, 0.03],
     [-0.05, -0.02, 0.02, -0.02, -0.04, -0.04],
+    [0.01, -0.04, -0.04, 0.03, 0.04, 0.05],
 ]) * np.array([1.5, 1.5, 1.5, 2.5, 2.5, 2.5])
+WINDOW = 5
 SLOTS, ACTIVE = 256, 240  # per keyframe: 240 active edges, 16 padding slots
 WINDOW_CONFIG = MappingConfig(iterations=40, warmup_iterations=30, huber_delta=0.5,
                               max_residual=5.0)
@@ -325,6 +329,11 @@ def scene() -> dict[str, np.ndarray]:
     return {"poses": poses, "intrinsics": intr, **{k: np.stack(v) for k, v in out.items()}}
 
 
+def first(s: dict[str, np.ndarray], k: int = WINDOW) -> dict[str, np.ndarray]:
+    """The scene restricted to keyframes 0..k-1."""
+    return {key: (v if key == "intrinsics" else v[:k]) for key, v in s.items()}
+
+
 def as_problem(s: dict[str, np.ndarray]) -> WindowProblem:
     return WindowProblem(
         jnp.asarray(s["poses"]), jnp.asarray(s["uv"]), jnp.asarray(s["rho"]),
@@ -367,8 +376,8 @@ def window_errors(prob: WindowProblem, s: dict[str, np.ndarray]) -> dict[str, fl
 def refined(scene):
     """The perturbed window and its refinement (float64)."""
     with jax.enable_x64(True):
-        start = as_problem(perturbed(scene, seed=1))
-        out, stats = refine_jit(start, WINDOW_CONFIG)
+        start = as_problem(perturbed(first(scene), seed=1))
+        out, stats = refine_jit(start, WINDOW_CONFIG, no_prior(start))  # shares test 5's program
         jax.block_until_ready(out)
         return start, out, {k: float(v) for k, v in stats.items()}
 
@@ -376,7 +385,7 @@ def refined(scene):
 def test_ground_truth_has_near_zero_residuals(scene):
     """At the truth every residual is the rounding of the rendering (< 1 px): near-zero."""
     with jax.enable_x64(True):
-        e = residuals_jit(as_problem(scene))
+        e = residuals_jit(as_problem(first(scene)))
         inl = np.asarray(e.ok & e.consistent)
         assert inl.sum() > 0.9 * np.asarray(e.considered).sum()
         r = np.asarray(e.r)[inl]
@@ -385,32 +394,34 @@ def test_ground_truth_has_near_zero_residuals(scene):
 
 def test_refine_recovers_the_window(scene, refined):
     start, out, stats = refined
-    before, after = window_errors(start, scene), window_errors(out, scene)
+    truth = first(scene)
+    before, after = window_errors(start, truth), window_errors(out, truth)
     assert stats["cost_after"] < 0.3 * stats["cost_before"]
     assert before["t"] > 0.009 and before["r"] > 0.45
     for key in ("t", "r", "rho"):
         assert after[key] < before[key] / 5, (key, before, after)
     # The intrinsics are the weak direction: with motions of a few degrees, fx/fy and
     # cx/cy trade against rotation and depth, and the pixel-rounded rendering leaves a
-    # rough cost at the 0.1 px scale (started at the truth they drift ~1 px). Over seeds
-    # 1-3 they fall 2.5-6x; 5x holds for this seed only, so assert 2x.
-    assert after["c"] < before["c"] / 2, (before, after)
-    assert np.array_equal(np.asarray(out.rho)[~scene["valid"]], scene["rho"][~scene["valid"]])
+    # rough cost at the 0.1 px scale (started at the truth they drift ~1.2 px). Over
+    # perturbation seeds 1-6 they fall 4.0-12x (this one: 5.1x): 5x is not a robust bound.
+    assert after["c"] < before["c"] / 3, (before, after)
+    assert np.array_equal(np.asarray(out.rho)[~truth["valid"]], truth["rho"][~truth["valid"]])
     np.testing.assert_array_equal(out.poses[0], start.poses[0])  # the gauge keyframe
 
 
 # --- 5. marginalising a keyframe, then refining with the prior ------------------------------
 
 
-def test_marginalized_keyframe_prior_keeps_the_window(scene, refined):
-    """Drop the oldest keyframe of the refined window: the prior is symmetric, PSD and blind
-    to a global rigid motion; refining the 4 remaining keyframes (perturbed by 3 mm and
-    0.2 deg) with it brings them back to where the full-window refinement put them (the new
-    gauge is the oldest remaining keyframe, at its refined pose)."""
+def test_sliding_the_window_keeps_it_where_the_full_refinement_put_it(scene, refined):
+    """One slide of the window: marginalise the oldest keyframe of the refined window into a
+    prior (symmetric, PSD, blind to a global rigid motion of the rest), drop it, append
+    keyframe 5 (its true pose off by 3 mm and 0.2 deg, as tracking would give it) and move
+    the kept keyframes by 3 mm and 0.2 deg as well. Refining with the prior brings the kept
+    keyframes and the intrinsics back to the full window's solution (the oldest kept
+    keyframe is the new gauge) and keyframe 5 close to the truth."""
     _, full, _ = refined
     with jax.enable_x64(True):
         prior = marginalize_keyframe_jit(full, 0, WINDOW_CONFIG)
-        rest = remove_keyframe(full, 0)
         H = np.asarray(prior.H)
         assert H.shape == (6 * 4 + 4,) * 2 and prior.b.shape == (28,)
         np.testing.assert_allclose(H, H.T, atol=1e-9 * np.abs(H).max())
@@ -418,19 +429,29 @@ def test_marginalized_keyframe_prior_keeps_the_window(scene, refined):
         for g in np.eye(6):  # a global rigid motion of the remaining poses costs nothing
             v = np.concatenate([np.tile(g, 4), np.zeros(4)]) / 2.0
             assert np.linalg.norm(H @ v) < 1e-6 * np.linalg.norm(H, 2)
+        rest = remove_keyframe(full, 0)
+        new = as_problem({k: (v if k == "intrinsics" else v[WINDOW:]) for k, v in scene.items()})
         rng = np.random.default_rng(5)
-        poses = np.asarray(rest.poses).copy()
-        for k in range(1, 4):
-            xi = np.concatenate([rng.normal(size=3) * 0.003 / np.sqrt(3),
-                                 rng.normal(size=3) * np.deg2rad(0.2) / np.sqrt(3)])
+        poses = np.concatenate([np.asarray(rest.poses), np.asarray(new.poses)])
+        for k in range(1, 5):
+            xi = np.concatenate([rng.normal(size=3), rng.normal(size=3)])
+            xi[:3] *= 0.003 / np.linalg.norm(xi[:3])
+            xi[3:] *= np.deg2rad(0.2) / np.linalg.norm(xi[3:])
             poses[k] = np.asarray(jaxlie.SE3.exp(xi).as_matrix()) @ poses[k]
-        start = rest._replace(poses=jnp.asarray(poses))
-        cfg = WINDOW_CONFIG._replace(warmup_iterations=10, iterations=10)
-        out, stats = refine_jit(start, cfg, prior)
+        window = WindowProblem(*(
+            a if name == "intrinsics" else jnp.concatenate([a, b])
+            for name, a, b in zip(WindowProblem._fields, rest, new, strict=True)))
+        window = window._replace(poses=jnp.asarray(poses))
+        out, stats = refine_jit(window, WINDOW_CONFIG,
+                                append_keyframe_to_prior(prior, window.poses[-1]))
         assert stats["cost_after"] < stats["cost_before"]
-        dt = [np.linalg.norm(np.asarray(a)[:3, 3] - np.asarray(b)[:3, 3])
-              for a, b in zip(out.poses, rest.poses, strict=True)]
-        moved = [np.linalg.norm(np.asarray(a)[:3, 3] - b[:3, 3])
-                 for a, b in zip(rest.poses, poses, strict=True)]
-        assert max(dt) < 3e-4 and max(dt) < 0.2 * max(moved), (dt, moved)
-        np.testing.assert_allclose(out.intrinsics, rest.intrinsics, atol=0.05)
+        dt = [np.linalg.norm(a[:3, 3] - b[:3, 3])
+              for a, b in zip(np.asarray(out.poses)[:4], np.asarray(rest.poses), strict=True)]
+        dc = np.abs(np.asarray(out.intrinsics) - np.asarray(rest.intrinsics))
+        # keyframe 5 relative to the gauge keyframe (1), against the truth
+        rel = np.linalg.inv(np.asarray(out.poses)[0]) @ np.asarray(out.poses)[4]
+        rel_true = np.linalg.inv(scene["poses"][1]) @ scene["poses"][WINDOW]
+        err_new = np.linalg.norm(rel[:3, 3] - rel_true[:3, 3])
+        assert max(dt) < 1e-3, dt
+        assert dc.max() < 0.5, dc
+        assert err_new < 1.5e-3, err_new  # from 3 mm
