@@ -10,11 +10,6 @@ import jaxlie
 import numpy as np
 
 
-def se3_from_matrix(T: jnp.ndarray) -> jaxlie.SE3:
-    """jaxlie SE3 from a 4x4 homogeneous matrix."""
-    return jaxlie.SE3.from_matrix(jnp.asarray(T))
-
-
 def retract_left(T: jaxlie.SE3, xi: jnp.ndarray) -> jaxlie.SE3:
     """Left-multiplicative update exp(xi) * T, xi = [v, w] (6,)."""
     return jaxlie.SE3.exp(xi) @ T
@@ -25,12 +20,6 @@ def transform_points(T: jaxlie.SE3, pts: jnp.ndarray) -> jnp.ndarray:
     R, t = T.rotation().as_matrix(), T.translation()
     x, y, z = pts[0], pts[1], pts[2]
     return jnp.stack([R[i, 0] * x + R[i, 1] * y + R[i, 2] * z + t[i] for i in range(3)])
-
-
-def skew(w: jnp.ndarray) -> jnp.ndarray:
-    """The 3x3 cross-product matrix [w]x of a 3-vector."""
-    z = jnp.zeros((), w.dtype)
-    return jnp.array([[z, -w[2], w[1]], [w[2], z, -w[0]], [-w[1], w[0], z]])
 
 
 def inverse_np(T: np.ndarray) -> np.ndarray:

@@ -62,7 +62,8 @@ from typing import Any
 import numpy as np
 
 from edgevo_jax.config import SELECTIONS, Config
-from edgevo_jax.datasets.tum import TumSequence, load_sequence
+from edgevo_jax.datasets.tum import SHARED_CLIPS as DEFAULT_CLIPS
+from edgevo_jax.datasets.tum import SHARED_TUM, TumSequence, load_sequence
 from edgevo_jax.io import json_safe
 from edgevo_jax.preprocess import preprocess, to_gray
 from edgevo_jax.provenance import load_average, machine_info
@@ -71,12 +72,6 @@ from edgevo_jax.selection import candidates, select
 from edgevo_jax.viz import plot_ablation, plot_selection_overlay
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-SHARED_TUM = Path(__file__).resolve().parents[2] / "shared" / "data" / "tum"
-DEFAULT_CLIPS = (
-    "rgbd_dataset_freiburg3_teddy_first200",
-    "rgbd_dataset_freiburg1_xyz_first10",
-    "rgbd_dataset_freiburg1_desk_clip9",
-)
 STOCHASTIC = ("spg", "greedy", "random")
 MODE_ORDER = ("spg", "greedy", "random", "all")
 SPREAD_CELL = 32  # px: cell size of the spread measure of the selection figure

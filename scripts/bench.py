@@ -77,16 +77,12 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from edgevo_jax.datasets.tum import SHARED_CLIPS as DEFAULT_CLIPS
+from edgevo_jax.datasets.tum import SHARED_TUM
 from edgevo_jax.io import json_safe
 from edgevo_jax.provenance import machine_info
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-SHARED_TUM = Path(__file__).resolve().parents[2] / "shared" / "data" / "tum"
-DEFAULT_CLIPS = (
-    "rgbd_dataset_freiburg3_teddy_first200",
-    "rgbd_dataset_freiburg1_xyz_first10",
-    "rgbd_dataset_freiburg1_desk_clip9",
-)
 DEFAULT_EDGEVO = "edgevo"
 PEERS = ("cv2_rgb", "cv2_depth", "cv2_rgbd", "o3d_color", "o3d_hybrid")
 WARMUP_FRAMES = 2  # frame 0 sets up, frame 1 is the first pair (edgevo: compiles)

@@ -48,6 +48,14 @@ FREIBURG_CAMERAS: dict[str, tuple[Intrinsics, Distortion | None]] = {
     "freiburg3": (Intrinsics(535.4, 539.2, 320.1, 247.6), None),
 }
 
+# The project's development clips (in ../shared/data/tum next to a checkout; not shipped).
+SHARED_CLIPS = (
+    "rgbd_dataset_freiburg3_teddy_first200",
+    "rgbd_dataset_freiburg1_xyz_first10",
+    "rgbd_dataset_freiburg1_desk_clip9",
+)
+SHARED_TUM = Path(__file__).resolve().parents[3] / "shared" / "data" / "tum"
+
 _CAMERA_RE = re.compile(r"freiburg([123])|(?<![a-z0-9])fr([123])(?![a-z0-9])")
 
 
