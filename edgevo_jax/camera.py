@@ -38,13 +38,25 @@ class Intrinsics(NamedTuple):
             [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]], np.float64
         )
 
-    def validate(self) -> Intrinsics:
-        """Raise ValueError unless every value is finite and the focal lengths positive."""
+    def validate(self, *, width: int | None = None, height: int | None = None) -> Intrinsics:
+        """Raise ValueError unless every value is finite and positive; with the image size,
+        also unless the principal point lies inside the image. Returns self."""
         vals = np.asarray(self, np.float64)
         if not np.all(np.isfinite(vals)):
             raise ValueError(f"intrinsics must be finite, got {self}")
         if self.fx <= 0 or self.fy <= 0:
-            raise ValueError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+            raise ValueError(
+                f"intrinsics: focal lengths must be positive, got fx={self.fx}, fy={self.fy}"
+            )
+        if self.cx <= 0 or self.cy <= 0:
+            raise ValueError(
+                f"intrinsics: principal point must be positive, got cx={self.cx}, cy={self.cy}"
+            )
+        if (width is not None and self.cx >= width) or (height is not None and self.cy >= height):
+            raise ValueError(
+                f"intrinsics: principal point (cx={self.cx}, cy={self.cy}) lies outside the "
+                f"{width}x{height} image (given in the order FX FY CX CY?)"
+            )
         return self
 
 

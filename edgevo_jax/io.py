@@ -54,7 +54,8 @@ def read_trajectory(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarra
 
     Blank lines and lines starting with '#' are skipped; fields may be separated by spaces,
     tabs or commas. Raises FileNotFoundError if the file is missing and ValueError naming
-    ``path:line`` for a line that does not hold exactly 8 finite numbers.
+    ``path:line`` for a line that does not hold exactly 8 finite numbers, or whose quaternion
+    is zero.
     """
     p = Path(path)
     if not p.is_file():
@@ -77,6 +78,8 @@ def read_trajectory(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarra
                 raise ValueError(f"{p}:{lineno}: not a number in {line!r}") from exc
             if not all(np.isfinite(vals)):
                 raise ValueError(f"{p}:{lineno}: non-finite value in {line!r}")
+            if not any(vals[4:]):
+                raise ValueError(f"{p}:{lineno}: zero quaternion (qx qy qz qw) in {line!r}")
             rows.append(vals)
     arr = np.asarray(rows, np.float64).reshape(-1, 8)
     return arr[:, 0].copy(), arr[:, 1:].copy()
@@ -104,6 +107,8 @@ def write_trajectory(
     part = _part_path(out)
     with part.open("w", encoding="utf-8") as f:
         f.writelines(_format_line(t, p) for t, p in zip(ts.tolist(), ps, strict=True))
+        f.flush()
+        os.fsync(f.fileno())
     os.replace(part, out)
 
 
@@ -111,8 +116,9 @@ class TrajectoryWriter:
     """Incremental TUM trajectory writer.
 
     Each ``write`` appends one flushed line to ``path + '.part'``; a clean ``close()`` (or a
-    ``with`` block that exits normally) renames it to ``path``. If the ``with`` block raises,
-    the ``.part`` file is kept with every line written so far and the exception propagates.
+    ``with`` block that exits normally) syncs it to disk and renames it to ``path``, so a file
+    under the final name is always whole. If the ``with`` block raises, the ``.part`` file is
+    kept with every line written so far and the exception propagates.
     """
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
@@ -135,6 +141,7 @@ class TrajectoryWriter:
         """Finish: rename ``.part`` to the final path (idempotent)."""
         if self._file is None:
             return
+        os.fsync(self._file.fileno())  # the data before the name: never a renamed empty file
         self._file.close()
         self._file = None
         os.replace(self.part_path, self.path)
@@ -232,6 +239,8 @@ def matrices_to_poses7(mats: np.ndarray) -> np.ndarray:
     m = np.asarray(mats, np.float64)
     if m.ndim < 2 or m.shape[-2:] != (4, 4):
         raise ValueError(f"pose matrices must have shape (..., 4, 4), got {m.shape}")
+    if not np.all(np.isfinite(m)):
+        raise ValueError("pose matrices must be finite")
     return np.concatenate([m[..., :3, 3], rotmat_to_quat(m[..., :3, :3])], axis=-1)
 
 

@@ -12,6 +12,7 @@ import functools
 import math
 import os
 import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,8 +26,10 @@ from edgevo_jax.metrics import associate_timestamps
 __all__ = [
     "FREIBURG_CAMERAS",
     "FROM_NAME",
+    "EmptyDepthWarning",
     "TumSequence",
     "camera_from_name",
+    "empty_depth_note",
     "groundtruth_pose_at",
     "load_sequence",
     "read_file_list",
@@ -57,6 +60,11 @@ SHARED_CLIPS = (
 SHARED_TUM = Path(__file__).resolve().parents[3] / "shared" / "data" / "tum"
 
 _CAMERA_RE = re.compile(r"freiburg([123])|(?<![a-z0-9])fr([123])(?![a-z0-9])")
+
+
+class EmptyDepthWarning(UserWarning):
+    """A depth image without a single measurement (all zero): the run goes on, the frame can
+    be tracked against the keyframe but cannot become one."""
 
 
 class _FromName(enum.Enum):
@@ -142,12 +150,85 @@ def _read_image(path: Path, flags: int, what: str) -> np.ndarray:
     return img
 
 
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_END = b"IEND\xaeB`\x82"  # the IEND chunk type and its CRC: the last bytes of a whole PNG
+# PNG colour type -> (what cv2.IMREAD_UNCHANGED makes of it)
+_PNG_COLOUR = {0: "1 channel", 2: "3 channels", 3: "palette colour", 4: "gray + alpha",
+               6: "4 channels"}
+
+
+def _png_header(path: Path, what: str) -> tuple[int, int, str] | None:
+    """(width, height, description) from a PNG's header, checking that the file is a whole
+    PNG (signature, IHDR, IEND at the end) without decoding it; None for a non-PNG name."""
+    if path.suffix.lower() != ".png":
+        return None
+    size = path.stat().st_size
+    with path.open("rb") as f:
+        head = f.read(26)
+        f.seek(max(size - 64, 0))
+        tail = f.read()
+    if len(head) < 26 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
+        raise ValueError(f"cannot decode {what} image {path}: not a PNG file ({size} bytes; "
+                         "corrupt?)")
+    if _PNG_END not in tail:
+        raise ValueError(f"cannot decode {what} image {path}: truncated PNG (no IEND chunk at "
+                         f"the end of its {size} bytes)")
+    width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    bits = "16-bit" if head[24] == 16 else "8-bit"
+    return width, height, f"{bits}, {_PNG_COLOUR.get(head[25], f'colour type {head[25]}')}"
+
+
+def _check_files(rgb_files: tuple[Path, ...], depth_files: tuple[Path, ...]) -> None:
+    """Every associated image present, a whole PNG, the same size, depth 16-bit single
+    channel: read from the files' headers and ends only (no decoding), so a bad file deep in a
+    long sequence is reported before tracking starts."""
+    for what, files in (("rgb", rgb_files), ("depth", depth_files)):
+        missing = [f for f in files if not f.is_file()]
+        if missing:
+            more = f" (and {len(missing) - 1} more of its {len(files)} {what} images)"
+            raise FileNotFoundError(
+                f"{what} image not found: {missing[0]}" + (more if len(missing) > 1 else "")
+            )
+    size = None
+    for rgb_path, depth_path in zip(rgb_files, depth_files, strict=True):
+        rgb = _png_header(rgb_path, "rgb")
+        depth = _png_header(depth_path, "depth")
+        if depth is not None and depth[2] != "16-bit, 1 channel":
+            raise ValueError(
+                f"depth image {depth_path} must be single-channel 16-bit, got {depth[2]}"
+            )
+        if rgb is not None and depth is not None and rgb[:2] != depth[:2]:
+            raise ValueError(
+                f"rgb {rgb_path} is {rgb[0]}x{rgb[1]} but depth {depth_path} is "
+                f"{depth[0]}x{depth[1]} (width x height)"
+            )
+        here = rgb or depth
+        if here is not None:
+            if size is None:
+                size = (here[:2], rgb_path if rgb is not None else depth_path)
+            elif here[:2] != size[0]:
+                raise ValueError(
+                    f"frame {rgb_path} is {here[0]}x{here[1]}, the sequence (from "
+                    f"{size[1]}) is {size[0][0]}x{size[0][1]} (width x height)"
+                )
+
+
 def _describe(img: np.ndarray) -> str:
     bits = {np.dtype(np.uint8): "8-bit", np.dtype(np.uint16): "16-bit"}.get(
         img.dtype, f"dtype {img.dtype}"
     )
     channels = 1 if img.ndim == 2 else img.shape[2]
     return f"{bits}, {channels} channel{'s' if channels != 1 else ''}"
+
+
+def empty_depth_note(raw: np.ndarray, path: str | os.PathLike[str]) -> str | None:
+    """A message when a depth image holds no measurement at all (every pixel 0 or NaN),
+    else None."""
+    valid = np.isfinite(raw) & (raw > 0) if raw.dtype.kind == "f" else raw != 0
+    if np.any(valid):
+        return None
+    return (f"depth image {path} has no depth measurement (all zero): the frame can be "
+            "tracked but cannot become a keyframe")
 
 
 @dataclass(frozen=True, eq=False)
@@ -188,7 +269,11 @@ class TumSequence:
 
     def decode_frame(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """Frame i as stored: rgb uint8 (H, W, 3) in RGB order and raw uint16 depth (H, W),
-        checked (file present and readable, 16-bit single-channel depth, matching sizes)."""
+        checked (file present and readable, 16-bit single-channel depth, matching sizes).
+
+        A depth image without any measurement (all zero) is not an error: it warns with
+        :class:`EmptyDepthWarning` naming the file, and the frame is returned as it is.
+        """
         n = len(self)
         if not -n <= i < n:
             raise IndexError(f"frame {i} out of range for {self.name} ({n} frames)")
@@ -209,6 +294,9 @@ class TumSequence:
                 f"frame {rgb_path} is {raw.shape[1]}x{raw.shape[0]}, the sequence is "
                 f"{self.width}x{self.height} (width x height)"
             )
+        note = empty_depth_note(raw, depth_path)
+        if note is not None:
+            warnings.warn(f"frame {i % n}: {note}", EmptyDepthWarning, stacklevel=2)
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), raw
 
     def rectify_frame(self, rgb: np.ndarray, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -230,20 +318,32 @@ def load_sequence(
     distortion: Distortion | _FromName | None = FROM_NAME,
     depth_factor: float = 5000.0,
     max_diff: float = 0.02,
+    check_images: bool = True,
 ) -> TumSequence:
     """Load a TUM RGB-D sequence folder, associating rgb and depth like ``associate.py``.
 
     Intrinsics come from the folder name (``camera_from_name``) unless given. ``distortion``
     defaults to the folder name's camera, or to None when ``intrinsics`` are given. Ground
-    truth is read when ``groundtruth.txt`` exists. Raises FileNotFoundError for a missing
-    folder or list and ValueError when no rgb/depth pair associates within ``max_diff``.
+    truth is read when ``groundtruth.txt`` exists (None otherwise: runs go on without ATE).
+
+    Everything that can be checked without tracking is checked here, so that a bad input stops
+    the run before any JAX code: FileNotFoundError for a missing folder, list or image;
+    ValueError (naming the file, and the line for text files) for an unparsable or unsorted
+    list, a bad ground-truth line, non-finite or non-positive intrinsics, a principal point
+    outside the image, when no rgb/depth pair associates within ``max_diff``, and for any image
+    that is not a whole PNG (truncated, not a PNG), a depth image that is not 16-bit single
+    channel or images of different sizes (``check_images=False`` skips the image checks
+    except on the first frame, which is always decoded).
     """
     root = Path(path)
     if not root.is_dir():
         raise FileNotFoundError(f"TUM sequence folder not found: {root}")
     for fname in ("rgb.txt", "depth.txt"):
         if not (root / fname).is_file():
-            raise FileNotFoundError(f"{fname} not found in TUM sequence folder {root}")
+            raise FileNotFoundError(
+                f"file list not found: {root / fname} (a TUM sequence folder holds rgb.txt, "
+                "depth.txt, rgb/ and depth/)"
+            )
     if not (math.isfinite(depth_factor) and depth_factor > 0):
         raise ValueError(f"depth_factor must be positive and finite, got {depth_factor}")
     name = Path(os.path.abspath(root)).name  # normalise '.'/'..' but keep symlink names
@@ -271,9 +371,18 @@ def load_sequence(
     rgb_files = tuple(root / rgb_rel[i] for i in pairs[:, 0])
     depth_files = tuple(root / depth_rel[j] for j in pairs[:, 1])
     gt_path = root / "groundtruth.txt"
-    groundtruth = read_trajectory(gt_path) if gt_path.is_file() else None
+    groundtruth = None
+    if gt_path.is_file():
+        try:
+            groundtruth = read_trajectory(gt_path)
+        except ValueError as err:
+            raise ValueError(
+                f"ground truth {err} (fix it, or remove {gt_path.name} to run without ATE)"
+            ) from None
+    if check_images:
+        _check_files(rgb_files, depth_files)
     first = _read_image(rgb_files[0], cv2.IMREAD_COLOR, "rgb")
-    return TumSequence(
+    seq = TumSequence(
         root=root,
         name=name,
         intrinsics=intr,
@@ -286,6 +395,12 @@ def load_sequence(
         width=int(first.shape[1]),
         height=int(first.shape[0]),
     )
+    if intrinsics is not None:  # the Freiburg table holds for the cameras' 640x480 frames
+        intr.validate(width=seq.width, height=seq.height)
+    with warnings.catch_warnings():  # an empty first depth warns when the run decodes it
+        warnings.simplefilter("ignore", EmptyDepthWarning)
+        seq.decode_frame(0)  # decoded in full once: what the headers cannot tell
+    return seq
 
 
 def groundtruth_pose_at(

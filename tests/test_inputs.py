@@ -1,0 +1,486 @@
+"""Bad inputs: each one gives a clear error naming the file and the problem before any JAX code
+runs (or, for an all-zero depth frame, a warning naming it while the run goes on).
+
+The cases are real frames of the bundled fr1/xyz clip copied into tmp_path and damaged.
+``python tests/test_inputs.py`` prints the catalogue of what a user of ``edgevo`` sees for each
+(docs/errors.md is its output).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import re
+import shutil
+import sys
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from unittest import mock
+
+import cv2
+import numpy as np
+import pytest
+
+from edgevo_jax import cli
+from edgevo_jax.camera import Intrinsics
+from edgevo_jax.cli import BUNDLED_CLIP
+from edgevo_jax.config import Config
+from edgevo_jax.datasets import read_file_list
+from edgevo_jax.datasets.tum import EmptyDepthWarning, TumSequence, load_sequence
+from edgevo_jax.io import TrajectoryWriter
+
+NAME = "rgbd_dataset_freiburg1_xyz_bad"  # the camera (freiburg1) comes from the name
+FRAMES = 5  # rgb and depth images copied from the bundled clip (4 associated pairs)
+
+
+def copy_clip(root: Path, *, groundtruth: bool = True) -> Path:
+    """The first FRAMES rgb and depth images of the bundled clip with their lists, writable
+    (the packaged files may be read-only, so no copytree)."""
+    for kind in ("rgb", "depth"):
+        (root / kind).mkdir(parents=True)
+        stamps, names = read_file_list(BUNDLED_CLIP / f"{kind}.txt")
+        lines = [f"# {kind} (first {FRAMES} of the bundled clip)\n"]
+        for t, rel in list(zip(stamps, names, strict=True))[:FRAMES]:
+            shutil.copyfile(BUNDLED_CLIP / rel, root / rel)
+            lines.append(f"{t:.6f} {rel}\n")
+        (root / f"{kind}.txt").write_text("".join(lines))
+    if groundtruth:
+        shutil.copyfile(BUNDLED_CLIP / "groundtruth.txt", root / "groundtruth.txt")
+    return root
+
+
+def _frame(root: Path, kind: str, k: int) -> Path:
+    """The image file of list line k (0-based, comments skipped) of rgb.txt / depth.txt.
+
+    Of the copied lines, rgb 2 and depth 1 associate with nothing (see test_tum); the pairs
+    are (rgb, depth) = (0, 0), (1, 2), (3, 3), (4, 4)."""
+    return root / read_file_list(root / f"{kind}.txt")[1][k]
+
+
+def _lines(path: Path) -> list[str]:
+    return path.read_text().splitlines(keepends=True)
+
+
+# ----------------------------------------------------------------------------- the cases
+
+
+@dataclass(frozen=True)
+class Case:
+    """A bad input: ``make(root)`` damages a fresh copy and returns (folder to load, keyword
+    arguments of load_sequence, the path the message must name); the error's type and a regex
+    for the problem."""
+
+    name: str
+    make: Callable[[Path], tuple[Path, dict, Path]]
+    error: type[Exception]
+    problem: str
+
+
+def _missing_folder(root):
+    return root.parent / "rgbd_dataset_freiburg1_nowhere", {}, root.parent / (
+        "rgbd_dataset_freiburg1_nowhere")
+
+
+def _missing_list(kind):
+    def make(root):
+        (root / f"{kind}.txt").unlink()
+        return root, {}, root / f"{kind}.txt"
+    return make
+
+
+def _missing_image(root):
+    path = _frame(root, "depth", 3)
+    path.unlink()
+    return root, {}, path
+
+
+def _random_bytes(root):
+    path = _frame(root, "rgb", 3)
+    path.write_bytes(np.random.default_rng(0).bytes(5000))
+    return root, {}, path
+
+
+def _truncated(root):
+    path = _frame(root, "depth", 3)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    return root, {}, path
+
+
+def _depth_as(convert):
+    def make(root):
+        path = _frame(root, "depth", 2)
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(path), convert(raw))
+        return root, {}, path
+    return make
+
+
+def _depth_other_size(root):
+    path = _frame(root, "depth", 3)
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    cv2.imwrite(str(path), cv2.resize(raw, (320, 240), interpolation=cv2.INTER_NEAREST))
+    return root, {}, path
+
+
+def _frame_other_size(root):
+    for kind in ("rgb", "depth"):
+        path = _frame(root, kind, 3)
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(path), cv2.resize(img, (320, 240), interpolation=cv2.INTER_NEAREST))
+    return root, {}, _frame(root, "rgb", 3)
+
+
+def _intrinsics(fx, fy, cx, cy):
+    def make(root):
+        return root, {"intrinsics": Intrinsics(fx, fy, cx, cy)}, Path("intrinsics")
+    return make
+
+
+def _list_line(kind, k, text):
+    """Replace data line k (0-based) of rgb.txt / depth.txt (line 1 is the comment)."""
+    def make(root):
+        path = root / f"{kind}.txt"
+        lines = _lines(path)
+        lines[1 + k] = text(lines[1 + k]) + "\n"
+        path.write_text("".join(lines))
+        return root, {}, Path(f"{path}:{2 + k}")
+    return make
+
+
+def _swap_first_two(root):
+    path = root / "rgb.txt"
+    lines = _lines(path)
+    lines[1], lines[2] = lines[2], lines[1]
+    path.write_text("".join(lines))
+    return root, {}, Path(f"{path}:3")
+
+
+def _duplicate(root):
+    path = root / "depth.txt"
+    lines = _lines(path)
+    t = lines[1].split()[0]
+    lines[2] = f"{t} {lines[2].split()[1]}\n"
+    path.write_text("".join(lines))
+    return root, {}, Path(f"{path}:3")
+
+
+def _groundtruth_line(text):
+    def make(root):
+        path = root / "groundtruth.txt"
+        lines = _lines(path)
+        lines[5] = text + "\n"  # line 6: the first three are comments
+        path.write_text("".join(lines))
+        return root, {}, Path(f"{path}:6")
+    return make
+
+
+def _no_pairs(root):
+    path = root / "depth.txt"
+    lines = [ln if ln.startswith("#") else f"{float(ln.split()[0]) + 5:.6f} {ln.split()[1]}\n"
+             for ln in _lines(path)]
+    path.write_text("".join(lines))
+    return root, {}, root
+
+
+def _no_camera(root):
+    other = root.parent / "my_recording"
+    root.rename(other)
+    return other, {}, Path("my_recording")
+
+
+CASES = [
+    Case("missing folder", _missing_folder, FileNotFoundError, "folder not found"),
+    Case("missing rgb.txt", _missing_list("rgb"), FileNotFoundError, "not found"),
+    Case("missing depth.txt", _missing_list("depth"), FileNotFoundError, "not found"),
+    Case("missing image", _missing_image, FileNotFoundError, "depth image not found"),
+    Case("corrupt PNG (random bytes)", _random_bytes, ValueError,
+         r"cannot decode rgb image .*not a PNG file"),
+    Case("truncated PNG", _truncated, ValueError, r"cannot decode depth image .*truncated"),
+    Case("8-bit depth", _depth_as(lambda d: (d // 256).astype(np.uint8)), ValueError,
+         r"must be single-channel 16-bit, got 8-bit, 1 channel"),
+    Case("3-channel depth", _depth_as(lambda d: np.dstack([d, d, d])), ValueError,
+         r"must be single-channel 16-bit, got 16-bit, 3 channels"),
+    Case("rgb and depth of different sizes", _depth_other_size, ValueError,
+         r"is 640x480 but depth .* is 320x240"),
+    Case("a frame of another size", _frame_other_size, ValueError,
+         r"is 320x240, the sequence .* is 640x480"),
+    Case("NaN intrinsics", _intrinsics(float("nan"), 516.5, 318.6, 255.3), ValueError,
+         "intrinsics must be finite"),
+    Case("non-positive focal length", _intrinsics(517.3, 0.0, 318.6, 255.3), ValueError,
+         "focal lengths must be positive"),
+    Case("non-positive principal point", _intrinsics(517.3, 516.5, -318.6, 255.3), ValueError,
+         "principal point must be positive"),
+    Case("principal point outside the image", _intrinsics(318.6, 255.3, 517.3, 516.5),
+         ValueError, "outside the 640x480 image"),
+    Case("unsorted timestamps", _swap_first_two, ValueError, "strictly increasing"),
+    Case("duplicate timestamps", _duplicate, ValueError, "strictly increasing"),
+    Case("list line without a filename", _list_line("depth", 2, lambda ln: ln.split()[0]),
+         ValueError, "expected 'timestamp filename'"),
+    Case("list line with a bad timestamp", _list_line("rgb", 1, lambda ln: "x" + ln.strip()),
+         ValueError, "bad timestamp"),
+    Case("list line with a non-finite timestamp",
+         _list_line("rgb", 3, lambda ln: "nan " + ln.split()[1]), ValueError,
+         "non-finite timestamp"),
+    Case("no rgb/depth pair associates", _no_pairs, ValueError, "no rgb/depth pair"),
+    Case("ground-truth line of 7 numbers", _groundtruth_line("1305031101.7 1 2 3 0 0 0"),
+         ValueError, r"ground truth .*expected 8 numbers.*remove groundtruth\.txt"),
+    Case("ground-truth line with a word", _groundtruth_line("1305031101.7 1 2 3 0 0 0 one"),
+         ValueError, "not a number"),
+    Case("ground-truth line with NaN", _groundtruth_line("1305031101.7 1 nan 3 0 0 0 1"),
+         ValueError, "non-finite value"),
+    Case("ground-truth zero quaternion", _groundtruth_line("1305031101.7 1 2 3 0 0 0 0"),
+         ValueError, "zero quaternion"),
+    Case("no camera in the folder name", _no_camera, ValueError,
+         "cannot tell the camera from the name"),
+]
+
+
+@pytest.fixture
+def clip(tmp_path) -> Path:
+    return copy_clip(tmp_path / NAME)
+
+
+def test_the_copied_clip_loads(clip):
+    """The undamaged copy is a good sequence: each failure below is the damage's doing."""
+    seq = load_sequence(clip)
+    assert len(seq) == 4 and (seq.width, seq.height) == (640, 480)
+    assert seq.groundtruth is not None
+    for i in range(len(seq)):
+        seq.decode_frame(i)
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c.name for c in CASES])
+def test_bad_input_names_file_and_problem(clip, case):
+    path, kwargs, names = case.make(clip)
+    with pytest.raises(case.error) as info:
+        load_sequence(path, **kwargs)
+    message = str(info.value)
+    assert re.search(case.problem, message), message
+    assert str(names) in message, message
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c.name for c in CASES])
+def test_cli_reports_bad_input_before_tracking(clip, case, monkeypatch, capsys):
+    """``edgevo run``: exit status 2 and the message on stderr; the tracker never starts."""
+    path, kwargs, names = case.make(clip)
+    argv = ["run", str(path), "--out", str(clip.parent / "t.txt"), "--no-progress"]
+    if "intrinsics" in kwargs:
+        argv += ["--intrinsics", *(str(v) for v in kwargs["intrinsics"])]
+
+    def no_run(*args, **kw):
+        raise AssertionError("run_sequence called on a bad input")
+
+    monkeypatch.setattr("edgevo_jax.runner.run_sequence", no_run)
+    monkeypatch.setenv("EDGEVO_CACHE_DIR", "")
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("edgevo: error: ") and str(names) in err, err
+    assert re.search(case.problem, err), err
+
+
+def test_damaged_middle_of_a_png_stops_at_its_frame(clip):
+    """Header and end intact, data scrambled: only decoding finds it, at its own frame."""
+    path = _frame(clip, "depth", 2)
+    data = bytearray(path.read_bytes())
+    mid = len(data) // 2
+    data[mid : mid + 2000] = bytes(b ^ 0x5A for b in data[mid : mid + 2000])
+    path.write_bytes(bytes(data))
+    seq = load_sequence(clip)
+    k = seq.depth_files.index(path)
+    for i in range(k):
+        seq.decode_frame(i)
+    with pytest.raises(ValueError, match=rf"cannot decode depth image {re.escape(str(path))}"):
+        seq.decode_frame(k)
+
+
+def test_images_unchecked_on_load_are_still_checked_on_decode(clip):
+    """check_images=False defers the checks to decode_frame, which still names the file."""
+    path = _frame(clip, "depth", 3)
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    cv2.imwrite(str(path), (raw // 256).astype(np.uint8))
+    with pytest.raises(ValueError, match="8-bit"):
+        load_sequence(clip)
+    seq = load_sequence(clip, check_images=False)
+    k = seq.depth_files.index(path)
+    with pytest.raises(ValueError, match=rf"{re.escape(str(path))}.*8-bit, 1 channel"):
+        seq.decode_frame(k)
+
+
+def _zero_depth(clip: Path, k: int) -> Path:
+    path = _frame(clip, "depth", k)
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    cv2.imwrite(str(path), np.zeros_like(raw))
+    return path
+
+
+def test_all_zero_depth_warns_with_its_file_and_does_not_stop(clip):
+    path = _zero_depth(clip, 2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        seq = load_sequence(clip)  # loading is quiet: the frame warns when it is decoded
+    k = seq.depth_files.index(path)
+    with pytest.warns(EmptyDepthWarning, match=rf"frame {k}: depth image "
+                      rf"{re.escape(str(path))} has no depth measurement \(all zero\)"):
+        rgb, depth = seq.load_frame(k)
+    assert rgb.shape == (480, 640, 3) and not depth.any()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        seq.load_frame(k - 1)  # the others do not warn
+
+
+@pytest.mark.slow
+def test_all_zero_depth_frames_are_flagged_and_the_run_goes_on(clip, tmp_path):
+    """An all-zero first depth cannot start the map and a later one cannot be a keyframe, but
+    the run tracks every frame and writes every pose."""
+    from edgevo_jax.runner import run_sequence
+
+    paths = [_zero_depth(clip, 0), _zero_depth(clip, 4)]  # frames 0 and 3
+    seq = load_sequence(clip)
+    assert [seq.depth_files.index(p) for p in paths] == [0, 3]
+    out = tmp_path / "traj.txt"
+    with pytest.warns(EmptyDepthWarning) as record:
+        run = run_sequence(seq, Config(), out=out, progress=False)
+    named = [str(w.message).split(": depth image ")[1].split(" has no")[0]
+             for w in record if issubclass(w.category, EmptyDepthWarning)]
+    assert named == [str(p) for p in paths]
+    assert len(run.results) == len(seq) and run.stopped_at is None
+    assert len(out.read_text().splitlines()) == len(seq)
+    # the first frame is flagged (no map can start from it) and is no keyframe
+    assert run.results[0].reason is not None and run.results[0].keyframe is None
+    assert run.results[1].keyframe is not None  # the map starts at the next frame
+    assert run.results[3].keyframe is None
+    assert np.all(np.isfinite(run.poses))
+
+
+@pytest.mark.slow
+def test_missing_ground_truth_runs_without_ate_and_says_so(tmp_path, capsys):
+    clip = copy_clip(tmp_path / NAME, groundtruth=False)
+    out = tmp_path / "t.txt"
+    assert cli.main(["run", str(clip), "--out", str(out), "--max-frames", "3",
+                     "--no-progress"]) == 0
+    text = capsys.readouterr().out
+    assert "ATE           n/a (no groundtruth.txt)" in text, text
+    assert "ATE RMSE" not in text
+    assert len(out.read_text().splitlines()) == 3
+
+
+def test_non_finite_user_pose(tmp_path, capsys):
+    """A pose handed in by the user: the initial pose of Odometry, a line of an estimate given
+    to ``edgevo eval``, a pose written to a trajectory file."""
+    from edgevo_jax.tracker import Odometry
+
+    pose = np.eye(4)
+    pose[1, 3] = np.nan
+    intr = Intrinsics(517.3, 516.5, 318.6, 255.3)
+    with pytest.raises(ValueError, match="initial_pose.*finite"):
+        Odometry(Config(), intr, pose)
+    est = tmp_path / "est.txt"
+    est.write_text("1305031102.175304 0 0 0 0 0 0 1\n1305031102.211214 0 inf 0 0 0 0 1\n")
+    gt = BUNDLED_CLIP / "groundtruth.txt"
+    assert cli.main(["eval", str(gt), str(est)]) == 2
+    err = capsys.readouterr().err
+    assert f"{est}:2: non-finite value" in err, err
+    with TrajectoryWriter(tmp_path / "w.txt") as w, pytest.raises(ValueError, match="non-finite"):
+        w.write(1.0, [0, 0, np.nan, 0, 0, 0, 1])
+
+
+# ----------------------------------------------------------------------------- catalogue
+
+
+def _user_sees(argv: list[str]) -> tuple[int, str]:
+    """Exit status and what ``edgevo`` prints (stderr, then stdout)."""
+    err, out = io.StringIO(), io.StringIO()
+    with (contextlib.redirect_stderr(err), contextlib.redirect_stdout(out),
+          warnings.catch_warnings()):
+        warnings.resetwarnings()  # Python's defaults, as a user's shell has them
+        warnings.simplefilter("default")
+        rc = cli.main(argv)
+    return rc, (err.getvalue() + out.getvalue()).replace(str(_REPO) + "/", "")
+
+
+_REPO = Path(__file__).resolve().parents[1]
+_HEADER = """\
+# What `edgevo` says about bad inputs
+
+Each bad input below was made from real frames of the bundled fr1/xyz clip, copied and
+damaged, and run through `edgevo run` (or `edgevo eval`); the text is what the command printed
+(paths shortened: `DIR` is the folder holding the damaged copy, `OUT` the output folder).
+Everything here is generated by `python tests/test_inputs.py > docs/errors.md`, and
+tests/test_inputs.py checks each message names the file (and line) and the problem.
+
+Everything that can be checked without tracking is checked by `load_sequence` before the
+tracker starts (exit status 2, nothing written): folder, lists, ground truth, intrinsics, and
+every associated image's PNG header and end (present, whole, same size, 16-bit single-channel
+depth), plus a full decode of the first frame. A PNG damaged *inside* (header and end whole)
+is only found when its frame is decoded: the run stops there and the poses done so far stay in
+`<out>.part` (as after Ctrl-C). An all-zero depth frame is no error: it warns, naming the file,
+and the run goes on. A missing `groundtruth.txt` is no error either: the run goes on and the
+summary says `ATE n/a (no groundtruth.txt)`.
+"""
+
+
+def catalogue() -> str:
+    """Markdown: each bad input and the message ``edgevo run`` prints for it."""
+    import tempfile
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        base = Path(tmp)
+        for n, case in enumerate(CASES):
+            root = copy_clip(base / str(n) / NAME)
+            path, kwargs, _ = case.make(root)
+            argv = ["run", str(path), "--out", str(base / "t.txt"), "--no-progress"]
+            if "intrinsics" in kwargs:
+                argv += ["--intrinsics", *(str(v) for v in kwargs["intrinsics"])]
+            rc, text = _user_sees(argv)
+            rows.append((case.name, " ".join(argv[1:2] + argv[4:]), rc,
+                         text.replace(str(base / str(n)), "DIR")))
+        root = copy_clip(base / "zero" / NAME)
+        _zero_depth(root, 2)
+        argv = ["run", str(root), "--out", str(base / "t.txt"), "--no-progress"]
+        rc, text = _user_sees(argv)
+        rows.append(("all-zero depth frame (a warning; the run goes on)", str(root), rc,
+                     text.replace(str(base / "zero"), "DIR").replace(str(base), "OUT")))
+        root = copy_clip(base / "nogt" / NAME, groundtruth=False)
+        argv = ["run", str(root), "--out", str(base / "t.txt"), "--no-progress"]
+        rc, text = _user_sees(argv)
+        rows.append(("no groundtruth.txt (the run goes on without ATE)", str(root), rc,
+                     text.replace(str(base / "nogt"), "DIR").replace(str(base), "OUT")))
+        root = copy_clip(base / "mid" / NAME)
+        path = _frame(root, "depth", 3)
+        data = bytearray(path.read_bytes())
+        data[len(data) // 2 : len(data) // 2 + 2000] = bytes(2000)
+        path.write_bytes(bytes(data))
+        rc, text = _user_sees(["run", str(root), "--out", str(base / "t.txt"), "--no-progress"])
+        rows.append(("PNG damaged inside (header and end whole): found when its frame is "
+                     "decoded, the run stops there", str(root), rc,
+                     text.replace(str(base / "mid"), "DIR").replace(str(base), "OUT")))
+        root = copy_clip(base / "int" / NAME)
+        decode = TumSequence.decode_frame
+
+        def interrupt_at_3(self, i):
+            if i == 3:
+                raise KeyboardInterrupt
+            return decode(self, i)
+
+        with mock.patch.object(TumSequence, "decode_frame", interrupt_at_3):
+            rc, text = _user_sees(["run", str(root), "--out", str(base / "t.txt"),
+                                   "--no-progress"])
+        rows.append(("Ctrl-C while frame 3 is decoded", str(root), rc,
+                     text.replace(str(base / "int"), "DIR").replace(str(base), "OUT")))
+        est = base / "est.txt"
+        est.write_text("1305031102.175304 0 0 0 0 0 0 1\n1305031102.211214 0 inf 0 0 0 0 1\n")
+        rc, text = _user_sees(["eval", str(BUNDLED_CLIP / "groundtruth.txt"), str(est)])
+        rows.append(("`edgevo eval` of an estimate with a non-finite value", str(est), rc,
+                     text.replace(str(base), "OUT")))
+    parts = [_HEADER]
+    for name, _, rc, text in rows:
+        parts.append(f"## {name}\n\nexit status {rc}\n\n```\n{text.rstrip()}\n```\n")
+    return "\n".join(parts).rstrip() + "\n"
+
+
+if __name__ == "__main__":
+    sys.stdout.write(catalogue())
