@@ -124,10 +124,14 @@ def run_sequence(
                 t_prev = now
                 bar.update(1)
                 bar.set_postfix(kf=odo.num_keyframes, refresh=False)
-    except BaseException:
+    except BaseException as exc:
         run.stopped_at = len(run.results)
+        kept = ""
         if writer is not None:
             writer.abort()  # keeps the lines written so far in the .part file
+            kept = f"; the {writer.count} poses done are in {writer.part_path}"
+        exc.add_note(f"{seq.name}: the run stopped at frame {run.stopped_at} of {n}{kept}")
+        exc.run_result = run  # type: ignore[attr-defined]  # the partial RunResult
         raise
     finally:
         bar.close()
