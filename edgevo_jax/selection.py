@@ -104,28 +104,65 @@ def _start(lam: float, dtype) -> tuple[jnp.ndarray, jnp.ndarray]:
     return jnp.eye(6, dtype=dtype) / lam, jnp.asarray(6.0 * math.log(lam), dtype)
 
 
-@partial(jax.jit, static_argnames=("num_edges", "lam"))
+def _mix32(x: jnp.ndarray) -> jnp.ndarray:
+    """MurmurHash3's 32-bit finaliser: a well-mixing function of uint32."""
+    x = (x ^ (x >> 16)) * jnp.uint32(0x85EBCA6B)
+    x = (x ^ (x >> 13)) * jnp.uint32(0xC2B2AE35)
+    return x ^ (x >> 16)
+
+
+def random_order(key: jax.Array, n: int) -> jnp.ndarray:
+    """A pseudo-random order of 0..n-1 drawn from ``key``, in O(n) and without a sort (XLA's
+    CPU sort or top_k of a few thousand keys costs about as much as the whole greedy): a
+    4-round Feistel network keyed by ``key`` on [0, 4^h), 4^h >= n, whose round function
+    is MurmurHash3's finaliser; a Feistel network is a bijection whatever its round function
+    (Luby-Rackoff: four rounds of a good one look like a random permutation). Values >= n
+    are left to the caller to skip. Returns (4^h,) int32, a permutation of 0..4^h-1."""
+    half = max(1, -(-max(n - 1, 1).bit_length() // 2))
+    mask = jnp.uint32((1 << half) - 1)
+    round_keys = jax.random.bits(key, (4,), jnp.uint32)
+    x = jnp.arange(1 << (2 * half), dtype=jnp.uint32)
+    left, right = x >> half, x & mask
+    for k in range(4):
+        left, right = right, left ^ (_mix32(right ^ round_keys[k]) & mask)
+    return ((left << half) | right).astype(jnp.int32)
+
+
+def first_usable(perm: jnp.ndarray, usable: jnp.ndarray, k: int
+                 ) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """The first ``k`` entries of ``perm`` (indices, possibly >= len(usable)) that are usable,
+    in their order (a binary search in the running count: no scatter, no sort), and a mask of
+    the slots that found one."""
+    n = usable.shape[0]
+    u = (perm < n) & usable[jnp.minimum(perm, n - 1)]
+    running = jnp.cumsum(u)
+    at = jnp.searchsorted(running, jnp.arange(1, k + 1), side="left")
+    return jnp.minimum(perm[jnp.minimum(at, perm.shape[0] - 1)], n - 1), at < perm.shape[0]
+
+
+@partial(jax.jit, static_argnames=("num_edges", "lam", "max_per_cell"))
 def partition_greedy(
-    J: jnp.ndarray, p: jnp.ndarray, ok: jnp.ndarray, table: jnp.ndarray, key: jax.Array,
-    *, num_edges: int, lam: float,
+    J: jnp.ndarray, p: jnp.ndarray, ok: jnp.ndarray, starts: jnp.ndarray,
+    counts: jnp.ndarray, key: jax.Array, *, num_edges: int, lam: float, max_per_cell: int,
 ) -> tuple[jnp.ndarray, jnp.ndarray]:
     """Stochastic partition greedy (EdgeVO Algorithm 1).
 
-    J (6, N) Jacobians, p (N,) re-observation probabilities, ok (N,) usable candidates,
-    table (P, M) candidate indices per partition (-1 = empty slot). Partitions with a usable
-    candidate are visited in a random order drawn from ``key``; each contributes the edge
-    maximising p_e * logdet(H(S) + H(e) + lam I). Returns (num_edges,) indices and validity.
+    J (6, N) Jacobians, p (N,) re-observation probabilities, ok (N,) usable candidates, all in
+    partition order; partition i holds candidates starts[i] .. starts[i] + counts[i] - 1 (P,),
+    of which the first M = ``max_per_cell`` compete (counts 0 = padding). Partitions with a
+    usable candidate are visited in a random order drawn from ``key``; each contributes the
+    edge maximising p_e * logdet(H(S) + H(e) + lam I). Returns (num_edges,) indices and
+    validity.
     """
-    slot_ok = (table >= 0) & ok[jnp.maximum(table, 0)]
-    has_any = jnp.any(slot_ok, axis=1)
-    # a random order of the partitions, usable ones first (top_k: XLA's CPU sort is slow)
-    k = min(num_edges, has_any.shape[0])
-    order = jax.lax.top_k(jax.random.uniform(key, has_any.shape) + 2.0 * has_any, k)[1]
-    steps = jnp.resize(order, (num_edges,))
-    live = jnp.arange(num_edges) < k
+    counts = jnp.minimum(counts, max_per_cell)
+    running = jnp.concatenate([jnp.zeros(1, jnp.int32), jnp.cumsum(ok.astype(jnp.int32))])
+    has_any = running[starts + counts] > running[starts]  # a usable candidate, no gather of M
+    # a random order of the partitions, usable ones first
+    steps, live = first_usable(random_order(key, has_any.shape[0]), has_any, num_edges)
     # gather every visited partition's candidates at once: the scan keeps only the sequence
-    cand = jnp.maximum(table[steps], 0)  # (num_edges, M)
-    valid = slot_ok[steps] & live[:, None]
+    slot = jnp.arange(max_per_cell)
+    cand = jnp.minimum(starts[steps][:, None] + slot, ok.shape[0] - 1)  # (num_edges, M)
+    valid = (slot < counts[steps][:, None]) & ok[cand] & live[:, None]
     Jc = jnp.moveaxis(J[:, cand], 0, -1)  # (num_edges, M, 6)
 
     def step(carry, xs):
@@ -179,28 +216,62 @@ def partition_ids(uv: np.ndarray, width: int, height: int, cell: int) -> tuple[n
     return cv * cols + cu, rows * cols
 
 
-def partition_table(cell_id: np.ndarray, num_cells: int, max_per_cell: int, seed: int
-                    ) -> np.ndarray:
-    """(P, M) indices of the points in each of the P cells, -1 padded; a seeded subset when a
-    cell holds more than M = ``max_per_cell``."""
-    table = np.full((num_cells, max_per_cell), -1, np.int32)
+def partition_order(cell_id: np.ndarray, max_per_cell: int, seed: int
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points grouped by partition: ``order`` (N,) sorts them by cell (a seeded shuffle within
+    a cell when one holds more than ``max_per_cell``, whose first M then form its subset);
+    ``starts`` and ``counts`` (P,) give each non-empty partition's range in that order."""
     if cell_id.size == 0:
-        return table
-    shuffled = np.random.default_rng(seed).permutation(cell_id.size)
-    order = shuffled[np.argsort(cell_id[shuffled], kind="stable")]
+        return np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros(0, np.intp)
+    key = cell_id.astype(np.uint16 if cell_id.max() < 1 << 16 else np.int64)  # radix sort
+    shuffle = None
+    if np.bincount(cell_id).max() > max_per_cell:
+        shuffle = np.random.default_rng(seed).permutation(cell_id.size)
+        key = key[shuffle]
+    order = np.argsort(key, kind="stable")
+    if shuffle is not None:
+        order = shuffle[order]
     sorted_ids = cell_id[order]
-    first = np.searchsorted(sorted_ids, sorted_ids, side="left")
-    rank = np.arange(order.size) - first
-    keep = rank < max_per_cell
-    table[sorted_ids[keep], rank[keep]] = order[keep]
-    return table
+    starts = np.flatnonzero(np.r_[True, sorted_ids[1:] != sorted_ids[:-1]])
+    counts = np.diff(np.r_[starts, cell_id.size])
+    return order, starts, counts
 
 
-def partition_mean(values: np.ndarray, cell_id: np.ndarray) -> np.ndarray:
-    """Each point's value replaced by the mean over its partition."""
-    total = np.bincount(cell_id, weights=values)
-    count = np.bincount(cell_id)
-    return (total / np.maximum(count, 1))[cell_id]
+def partition_mean(values: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Each value replaced by the mean over its partition (values in partition order, the
+    partitions' ranges ``starts`` + ``counts``)."""
+    return np.repeat(np.add.reduceat(values, starts) / counts, counts).astype(values.dtype)
+
+
+@partial(jax.jit, static_argnames=("width", "height", "mode", "num_edges", "max_per_cell",
+                                   "lam", "a", "samples"))
+def _select_device(
+    points: jnp.ndarray, ranges: jnp.ndarray, T_prior: jnp.ndarray, intr: jnp.ndarray,
+    seed: jnp.ndarray, *, width: int, height: int, mode: str, num_edges: int,
+    max_per_cell: int, lam: float, a: float, samples: int,
+):
+    """One device call: information and visibility, the re-observation probabilities, then
+    the greedy of ``mode``. points (6, N): u, v, partition-mean rho, gx, gy, magnitude of the
+    candidates in partition order, padded to N; ranges (2N + 1,): the
+    number of real candidates, then the partitions' starts and counts (zero padded)."""
+    size = points.shape[1]
+    uv, rho, grad, mag = points[0:2], points[2], points[3:5], points[5]
+    n, starts, counts = ranges[0], ranges[1:size + 1], ranges[size + 1:]
+    live = jnp.arange(size) < n
+    J, visible = edge_information(uv, rho, grad, T_prior, Intrinsics(*intr), width, height)
+    p = reobservation_probability(mag, a)
+    ok = live & visible
+    key = jax.random.key(seed)
+    if mode == "spg":
+        return partition_greedy(J, p, ok, starts, counts, key, num_edges=num_edges, lam=lam,
+                                max_per_cell=max_per_cell)
+    return stochastic_greedy(J, p, ok, key, num_edges=num_edges, lam=lam, samples=samples)
+
+
+def _bucket(n: int, cap: int) -> int:
+    """Padded size for n points: the next power of two, at least 1024, at most ``cap``: a few
+    shapes, each compiled once, and no frame pays for thousands of empty slots."""
+    return min(cap, max(1024, 1 << max(n - 1, 0).bit_length()))
 
 
 def select(
@@ -219,31 +290,29 @@ def select(
     if config.selection in ("all", "random") or n == 0:
         k = min(n, config.edge_slots)
         return np.arange(n) if k == n else np.sort(rng.choice(n, k, replace=False))
-    cell_id, num_cells = partition_ids(cands.uv, width, height, config.cell_size)
-    pad = config.max_edges - n  # one padded size: one compilation
-    uv = np.pad(cands.uv, ((0, 0), (0, pad)))
-    rho = np.pad(partition_mean(cands.rho, cell_id), (0, pad), constant_values=1.0)
-    grad = np.pad(cands.grad, ((0, 0), (0, pad)))
-    J, visible = _information_jit(uv.astype(np.float32), rho.astype(np.float32), grad,
-                                  T_prior.astype(np.float32), intr, width, height)
-    p = reobservation_probability(jnp.asarray(np.pad(cands.mag, (0, pad))), config.canny_high)
-    ok = jnp.asarray(np.arange(config.max_edges) < n) & visible
-    key = jax.random.key(seed)
-    if config.selection == "spg":
-        table = partition_table(cell_id, num_cells, config.max_per_cell, seed)
-        idx, taken = partition_greedy(J, p, ok, table, key, num_edges=config.num_edges,
-                                      lam=config.logdet_lambda)
-    else:
-        # (N / k) log(1 / eps) samples per step, N taken as the slot count: a static number
-        ratio = config.max_edges / config.num_edges
-        samples = math.ceil(ratio * math.log(1 / config.greedy_epsilon))
-        idx, taken = stochastic_greedy(J, p, ok, key, num_edges=config.num_edges,
-                                       lam=config.logdet_lambda, samples=samples)
+    cell_id, _ = partition_ids(cands.uv, width, height, config.cell_size)
+    order, starts, counts = partition_order(cell_id, config.max_per_cell, seed)
+    size = _bucket(n, config.max_edges)  # partitions <= points: one size for both
+    points = np.zeros((6, size), np.float32)  # one buffer, one transfer
+    points[2] = 1.0
+    points[0:2, :n] = cands.uv[:, order]
+    points[2, :n] = partition_mean(cands.rho[order], starts, counts)
+    points[3:5, :n] = cands.grad[:, order]
+    points[5, :n] = cands.mag[order]
+    ranges = np.zeros(2 * size + 1, np.int32)
+    ranges[0] = n
+    ranges[1:1 + starts.size] = starts
+    ranges[1 + size:1 + size + counts.size] = counts
+    # (N / k) log(1 / eps) samples per greedy step (N: the padded size, a static number)
+    samples = math.ceil(size / config.num_edges * math.log(1 / config.greedy_epsilon))
+    idx, taken = _select_device(
+        points, ranges, T_prior.astype(np.float32), np.asarray(intr, np.float32),
+        np.uint32(seed & 0xFFFFFFFF), width=width, height=height, mode=config.selection,
+        num_edges=config.num_edges, max_per_cell=config.max_per_cell,
+        lam=float(config.logdet_lambda), a=float(config.canny_high), samples=samples,
+    )
     idx, taken = jax.device_get((idx, taken))
-    return np.sort(idx[taken])
-
-
-_information_jit = jax.jit(edge_information, static_argnames=("width", "height"))
+    return np.sort(order[idx[taken]])
 
 
 def pack_edges(cands: Candidates, idx: np.ndarray, size: int) -> KeyframeEdges:

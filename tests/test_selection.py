@@ -21,7 +21,7 @@ from edgevo_jax.selection import (
     logdet_gains,
     partition_greedy,
     partition_ids,
-    partition_table,
+    partition_order,
     select,
 )
 
@@ -42,25 +42,23 @@ def matroid_instances(draw):
     scale = draw(st.sampled_from([0.3, 1.0, 5.0]))
     rng = np.random.default_rng(seed)
     J = rng.normal(size=(6, n)) * scale
-    table = np.full((len(sizes), 3), -1, np.int32)
-    start = 0
-    for i, s in enumerate(sizes):
-        table[i, :s] = np.arange(start, start + s)
-        start += s
-    return J, table, seed
+    counts = np.asarray(sizes, np.int32)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int32)
+    return J, starts, counts, seed
 
 
 @given(matroid_instances())
 @settings(max_examples=40, deadline=None)
 def test_partition_greedy_reaches_half_the_brute_force_optimum(instance):
     """EdgeVO Proposition 1: under a partition matroid the greedy gets >= OPT / 2."""
-    J, table, seed = instance
+    J, starts, counts, seed = instance
     with jax.enable_x64(True):
         idx, taken = partition_greedy(
-            jnp.asarray(J), jnp.ones(J.shape[1]), jnp.ones(J.shape[1], bool), jnp.asarray(table),
-            jax.random.key(seed), num_edges=table.shape[0], lam=LAM)
+            jnp.asarray(J), jnp.ones(J.shape[1]), jnp.ones(J.shape[1], bool),
+            jnp.asarray(starts), jnp.asarray(counts), jax.random.key(seed),
+            num_edges=len(starts), lam=LAM, max_per_cell=3)
         chosen = np.asarray(idx)[np.asarray(taken)]
-    parts = [row[row >= 0] for row in table]
+    parts = [np.arange(s, s + c) for s, c in zip(starts, counts, strict=True)]
     opt = max(objective(J, S) for S in itertools.product(*parts))
     assert len(chosen) == len(parts)
     assert objective(J, chosen) >= 0.5 * opt - 1e-9
@@ -97,17 +95,40 @@ def test_sherman_morrison_update_keeps_the_inverse_and_logdet():
         np.testing.assert_allclose(logdet, np.linalg.slogdet(A)[1], rtol=1e-10)
 
 
-def test_partition_table_holds_each_point_once_in_its_cell():
+def test_partition_order_holds_each_point_once_in_its_cell():
     rng = np.random.default_rng(2)
     uv = np.stack([rng.uniform(0, 63, 400), rng.uniform(0, 47, 400)])
     cell_id, num_cells = partition_ids(uv, 64, 48, 8)
-    table = partition_table(cell_id, num_cells, 16, seed=0)
-    held = table[table >= 0]
-    assert len(held) == len(set(held.tolist()))
-    for c in range(num_cells):
-        members = table[c][table[c] >= 0]
-        assert np.all(cell_id[members] == c)
-        assert len(members) == min(16, int(np.sum(cell_id == c)))
+    order, starts, counts = partition_order(cell_id, 16, seed=0)
+    assert sorted(order.tolist()) == list(range(400))  # a permutation
+    nonempty = np.unique(cell_id)
+    assert starts.size == nonempty.size and counts.sum() == 400
+    for s, c, cell in zip(starts, counts, nonempty, strict=True):
+        assert np.all(cell_id[order[s:s + c]] == cell)
+        assert c == int(np.sum(cell_id == cell))
+
+
+def test_partition_order_shuffles_crowded_cells_by_seed():
+    cell_id = np.repeat(np.arange(3), 40)  # 40 points per cell, 16 compete
+    a = partition_order(cell_id, 16, seed=0)[0]
+    b = partition_order(cell_id, 16, seed=1)[0]
+    assert not np.array_equal(a[:16], b[:16])
+    np.testing.assert_array_equal(a, partition_order(cell_id, 16, seed=0)[0])
+
+
+def test_random_order_is_a_permutation_and_usable_ones_come_first():
+    from edgevo_jax.selection import first_usable, random_order
+
+    for n in (1, 5, 64, 1000):
+        perm = np.asarray(random_order(jax.random.key(n), n))
+        assert sorted(perm.tolist()) == list(range(perm.size)) and perm.size >= n
+    perms = {tuple(np.asarray(random_order(jax.random.key(k), 64))) for k in range(20)}
+    assert len(perms) == 20  # the key matters
+    usable = jnp.asarray(np.arange(10) % 3 == 0)
+    perm = jnp.asarray([7, 12, 3, 0, 9, 1, 6, 15, 2, 4, 5, 8, 10, 11, 13, 14])
+    first, live = first_usable(perm, usable, 6)
+    np.testing.assert_array_equal(np.asarray(first)[np.asarray(live)], [3, 0, 9, 6])
+    assert np.asarray(live).tolist() == [True] * 4 + [False] * 2
 
 
 @pytest.fixture(scope="module")
