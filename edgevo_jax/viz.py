@@ -1,26 +1,52 @@
-"""Plots of edge selection and of the selection ablation (matplotlib, optional).
+"""Plots of trajectories, frames, edge selection and configuration comparisons (matplotlib).
 
 matplotlib is an optional dependency (``pip install edgevo_jax[viz]``) and is imported only
 inside the functions. Figures are drawn on matplotlib's Agg canvas directly (no pyplot, no
 global backend switch, no display needed); each function writes one PNG and returns its path.
+The ``edgevo plot`` command (``edgevo_jax.cli``) makes each figure with one command line.
 
+- :func:`plot_trajectory`: estimated trajectory vs ground truth after the ATE's rigid
+  alignment (:func:`align_trajectory`), top view and x / y / z over time, coloured by the
+  per-pose error.
+- :func:`plot_frame`: one pre-processed frame: gray image, Canny edges coloured by gradient
+  magnitude, nearest-edge gradient direction and the distance-field pyramid (EdgeVO Fig. 3).
 - :func:`plot_selection_overlay`: selected edges over the gray image, one panel per selection
   (EdgeVO Fig. 5: partition greedy spreads the edges, plain greedy clusters them).
 - :func:`plot_ablation`: edges used vs ATE (EdgeVO Fig. 6) and time per frame vs ATE
   (Fig. 1d), from the records that ``scripts/ablation_selection.py`` aggregates.
+- :func:`plot_benchmark`: time per frame vs ATE per method, from ``scripts/bench.py`` rows.
+- :func:`read_results`: the records of a benchmark, ablation or ``edgevo run --stats`` JSON.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
-__all__ = ["ABLATION_KEYS", "plot_ablation", "plot_selection_overlay"]
+from .metrics import associate_timestamps, horn_align
+
+if TYPE_CHECKING:  # only for annotations: viz sits beside preprocess, not above it
+    from .preprocess import Frame
+
+__all__ = [
+    "ABLATION_KEYS",
+    "BENCH_KEYS",
+    "TrajectoryAlignment",
+    "align_trajectory",
+    "plot_ablation",
+    "plot_benchmark",
+    "plot_frame",
+    "plot_selection_overlay",
+    "plot_trajectory",
+    "read_results",
+    "require_matplotlib",
+]
 
 #: Keys every record passed to :func:`plot_ablation` must have.
 ABLATION_KEYS = (
@@ -42,6 +68,19 @@ _STYLE = {
 }
 _MODE_ORDER = ("spg", "greedy", "random", "all")
 _DPI = 120
+_MISSING_MATPLOTLIB = (
+    "edgevo_jax.viz needs matplotlib: pip install edgevo_jax[viz] "
+    "(or pip install 'matplotlib>=3.7')"
+)
+
+
+def require_matplotlib() -> None:
+    """Raise ImportError naming ``pip install edgevo_jax[viz]`` when matplotlib is missing
+    (call it before expensive work whose only purpose is a plot)."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError as err:
+        raise ImportError(_MISSING_MATPLOTLIB) from err
 
 
 def _figure(figsize: tuple[float, float], **kwargs: Any) -> Any:
@@ -50,19 +89,16 @@ def _figure(figsize: tuple[float, float], **kwargs: Any) -> Any:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
     except ImportError as err:  # pragma: no cover - exercised only without matplotlib
-        raise ImportError(
-            "edgevo_jax.viz needs matplotlib: pip install edgevo_jax[viz] "
-            "(or pip install 'matplotlib>=3.7')"
-        ) from err
+        raise ImportError(_MISSING_MATPLOTLIB) from err
     fig = Figure(figsize=figsize, **kwargs)
     FigureCanvasAgg(fig)
     return fig
 
 
-def _save(fig: Any, path: str | os.PathLike[str]) -> Path:
+def _save(fig: Any, path: str | os.PathLike[str], dpi: float | None = None) -> Path:
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, format="png", dpi=_DPI)
+    fig.savefig(out, format="png", dpi=_DPI if dpi is None else dpi)
     return out
 
 
@@ -72,12 +108,14 @@ def plot_selection_overlay(
     path: str | os.PathLike[str],
     *,
     title: str | None = None,
+    dpi: float | None = None,
 ) -> Path:
     """Draw each named selection of edge pixels over the gray image, one panel per name.
 
     gray: (H, W) image (any numeric dtype; shown with its own min/max); selections: name ->
     uv (2, N) pixel coordinates (u = column, v = row, origin at the centre of the top-left
-    pixel); the panel title gives the name and N. Writes a PNG to ``path``; returns the path.
+    pixel); the panel title gives the name and N. Writes a PNG to ``path`` (``dpi``: pixels
+    per inch, default 120; a panel is 4.8 inches wide); returns the path.
     """
     img = np.asarray(gray)
     if img.ndim != 2:
@@ -110,7 +148,7 @@ def plot_selection_overlay(
         ax.set_yticks([])
     if title:
         fig.suptitle(title, fontsize=12)
-    return _save(fig, path)
+    return _save(fig, path, dpi)
 
 
 def _check_records(records: Sequence[Mapping[str, Any]]) -> None:
@@ -146,8 +184,10 @@ def _num(value: Any) -> float:
     return math.nan if value is None else float(value)
 
 
-def plot_ablation(records: Sequence[Mapping[str, Any]], path: str | os.PathLike[str]) -> Path:
-    """Selection ablation in two panels; writes a PNG to ``path`` and returns the path.
+def plot_ablation(records: Sequence[Mapping[str, Any]], path: str | os.PathLike[str], *,
+                  dpi: float | None = None) -> Path:
+    """Selection ablation in two panels; writes a PNG to ``path`` (``dpi``: pixels per inch,
+    default 120; the figure is 13 x 5.2 inches) and returns the path.
 
     (a) edges used per frame (x, log scale) vs ATE RMSE in mm (y), one line per selection mode
     over its edge budgets, error bars = std of the ATE over seeds (EdgeVO Fig. 6);
@@ -215,4 +255,371 @@ def plot_ablation(records: Sequence[Mapping[str, Any]], path: str | os.PathLike[
         ax.grid(True, which="both", alpha=0.3)
         if ax.has_data():
             ax.legend(fontsize=9)
-    return _save(fig, path)
+    return _save(fig, path, dpi)
+
+
+# ---------------------------------------------------------------------------- trajectory
+
+_AXES = {"x": 0, "y": 1, "z": 2}
+
+
+class TrajectoryAlignment(NamedTuple):
+    """An estimated trajectory rigidly aligned onto the ground truth as the ATE aligns it.
+
+    est_t (N,) s and est_xyz (3, N) m: every estimated position, aligned (R @ p + t) into the
+    ground truth's world frame; gt_t (M,) s and gt_xyz (3, M) m: the ground-truth positions;
+    pairs (K, 2): associated (ground-truth index, estimate index), K >= 3; error (K,) m: the
+    per-pair position error after alignment (its RMS is the ATE RMSE); R (3, 3), t (3,): the
+    alignment, mapping estimate world coordinates into the ground-truth world frame.
+    """
+
+    est_t: np.ndarray
+    est_xyz: np.ndarray
+    gt_t: np.ndarray
+    gt_xyz: np.ndarray
+    pairs: np.ndarray
+    error: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+
+    @property
+    def rmse(self) -> float:
+        """ATE RMSE (m): the root mean square of ``error``."""
+        return float(np.sqrt(np.mean(self.error ** 2)))
+
+
+def align_trajectory(
+    gt_t: np.ndarray, gt_poses7: np.ndarray, est_t: np.ndarray, est_poses7: np.ndarray,
+    *, max_diff: float = 0.02,
+) -> TrajectoryAlignment:
+    """Align an estimate onto the ground truth exactly as :func:`edgevo_jax.metrics.ate` does.
+
+    gt_t (M,), est_t (N,): timestamps in seconds; gt_poses7 (M, 7), est_poses7 (N, 7):
+    ``tx ty tz qx qy qz qw`` of T_world_cam (metres), each in its own world frame. Timestamps
+    are associated within ``max_diff`` seconds (TUM ``associate.py``), the associated
+    estimated positions aligned onto the ground truth by :func:`edgevo_jax.metrics.horn_align`
+    (rigid, no scale). ValueError when fewer than 3 poses associate.
+    """
+    gt_ts = np.asarray(gt_t, np.float64)
+    est_ts = np.asarray(est_t, np.float64)
+    gt_p = np.asarray(gt_poses7, np.float64).reshape(-1, 7)
+    est_p = np.asarray(est_poses7, np.float64).reshape(-1, 7)
+    if gt_p.shape[0] != gt_ts.shape[0] or est_p.shape[0] != est_ts.shape[0]:
+        raise ValueError(
+            f"poses and timestamps differ in length: ground truth {gt_p.shape[0]} vs "
+            f"{gt_ts.shape[0]}, estimate {est_p.shape[0]} vs {est_ts.shape[0]}")
+    pairs = associate_timestamps(gt_ts, est_ts, max_diff)
+    if pairs.shape[0] < 3:
+        raise ValueError(
+            f"the trajectory plot needs at least 3 estimated poses within {max_diff} s of a "
+            f"ground-truth pose, got {pairs.shape[0]} (ground truth {gt_ts.size} poses, "
+            f"estimate {est_ts.size} poses): do the timestamps overlap?")
+    gt_xyz = gt_p[:, :3].T
+    est_raw = est_p[:, :3].T
+    R, t = horn_align(est_raw[:, pairs[:, 1]], gt_xyz[:, pairs[:, 0]])
+    est_xyz = R @ est_raw + t[:, None]
+    error = np.linalg.norm(est_xyz[:, pairs[:, 1]] - gt_xyz[:, pairs[:, 0]], axis=0)
+    return TrajectoryAlignment(est_ts, est_xyz, gt_ts, gt_xyz, pairs, error, R, t)
+
+
+def plot_trajectory(
+    gt_t: np.ndarray,
+    gt_poses7: np.ndarray,
+    est_t: np.ndarray,
+    est_poses7: np.ndarray,
+    path: str | os.PathLike[str],
+    *,
+    plane: str = "xy",
+    max_diff: float = 0.02,
+    title: str | None = None,
+    dpi: float | None = None,
+) -> Path:
+    """Estimated trajectory vs ground truth; writes a PNG to ``path`` and returns the path.
+
+    Inputs as :func:`align_trajectory` (seconds; poses7 of T_world_cam in metres). The
+    estimate is aligned onto the ground truth as the ATE does; left: top view, the ``plane``
+    axes (two of x, y, z of the ground truth's world frame, metres, equal scale); right:
+    x, y and z (m) over time (s from the first estimated pose). The ground truth is drawn
+    over the estimate's time span (plus 5 %); the estimate is a line with one dot per
+    associated pose, coloured by its position error after alignment (m, colour bar). The
+    title gives the ATE RMSE, equal to :func:`edgevo_jax.metrics.ate`'s. ``dpi``: pixels per
+    inch (default 120; the figure is 12 x 6 inches).
+    """
+    if len(plane) != 2 or plane[0] == plane[1] or any(c not in _AXES for c in plane):
+        raise ValueError(f"plane must be two different axes of x, y, z (e.g. 'xy'), got {plane!r}")
+    al = align_trajectory(gt_t, gt_poses7, est_t, est_poses7, max_diff=max_diff)
+    from matplotlib.colors import Normalize
+
+    t0 = float(al.est_t.min())
+    span = float(al.est_t.max()) - t0
+    pad = max(0.05 * span, max_diff)
+    in_span = (al.gt_t >= t0 - pad) & (al.gt_t <= t0 + span + pad)
+    gt_tt, gt_xyz = al.gt_t[in_span] - t0, al.gt_xyz[:, in_span]
+    order = np.argsort(al.est_t, kind="stable")
+    est_tt, est_xyz = al.est_t[order] - t0, al.est_xyz[:, order]
+    dots_t = al.est_t[al.pairs[:, 1]] - t0
+    dots = al.est_xyz[:, al.pairs[:, 1]]
+    norm = Normalize(vmin=0.0, vmax=max(float(al.error.max()), 1e-9))
+    cmap = "plasma"
+
+    fig = _figure((12.0, 6.0), layout="constrained")
+    grid = fig.add_gridspec(3, 2, width_ratios=(1.0, 1.15))
+    ax_top = fig.add_subplot(grid[:, 0])
+    i, j = _AXES[plane[0]], _AXES[plane[1]]
+    ax_top.plot(gt_xyz[i], gt_xyz[j], color="0.35", linewidth=2.0, label="ground truth")
+    ax_top.plot(est_xyz[i], est_xyz[j], color="tab:blue", linewidth=1.0, alpha=0.7,
+                label="estimate (aligned)")
+    sc = ax_top.scatter(dots[i], dots[j], c=al.error, cmap=cmap, norm=norm, s=22, zorder=3,
+                        edgecolors="k", linewidths=0.3)
+    ax_top.scatter(gt_xyz[i, :1], gt_xyz[j, :1], marker="*", s=120, color="0.35", zorder=4,
+                   label="ground-truth start")
+    ax_top.set_aspect("equal", adjustable="datalim")
+    ax_top.set_xlabel(f"{plane[0]} (m)")
+    ax_top.set_ylabel(f"{plane[1]} (m)")
+    ax_top.set_title(f"top view ({plane[0]}-{plane[1]} plane of the ground-truth frame)",
+                     fontsize=11)
+    ax_top.grid(True, alpha=0.3)
+    ax_top.legend(fontsize=9, loc="best")
+    fig.colorbar(sc, ax=ax_top, label="position error after alignment (m)", shrink=0.8)
+    first = None
+    for row, name in enumerate("xyz"):
+        ax = fig.add_subplot(grid[row, 1], sharex=first)
+        first = first or ax
+        k = _AXES[name]
+        ax.plot(gt_tt, gt_xyz[k], color="0.35", linewidth=2.0)
+        ax.plot(est_tt, est_xyz[k], color="tab:blue", linewidth=1.0, alpha=0.7)
+        ax.scatter(dots_t, dots[k], c=al.error, cmap=cmap, norm=norm, s=14, zorder=3,
+                   edgecolors="k", linewidths=0.3)
+        ax.set_ylabel(f"{name} (m)")
+        ax.grid(True, alpha=0.3)
+        if row < 2:
+            ax.tick_params(labelbottom=False)
+    ax.set_xlabel("time since the first estimated pose (s)")
+    head = title or "estimate vs ground truth"
+    fig.suptitle(f"{head}: ATE RMSE {al.rmse:.4f} m over {al.pairs.shape[0]} poses "
+                 "(rigid alignment, no scale)", fontsize=12)
+    return _save(fig, path, dpi)
+
+
+# ---------------------------------------------------------------------------- one frame
+
+
+def plot_frame(
+    gray: np.ndarray,
+    frame: Frame,
+    path: str | os.PathLike[str],
+    *,
+    title: str | None = None,
+    dpi: float | None = None,
+) -> Path:
+    """One pre-processed frame (EdgeVO Fig. 3); writes a PNG to ``path`` and returns it.
+
+    gray: (H, W) image the frame was computed from; frame: a
+    :class:`edgevo_jax.preprocess.Frame` (edge_uv (N, 2) pixels (u, v) = (column, row),
+    edge_mag (N,) Sobel L2 gradient magnitude in 8-bit intensity units, dist: one distance
+    field per level, (H / 2**l, W / 2**l) in that level's pixels, nearest_grad (H, W, 2)).
+    Top row: the gray image, the Canny edge pixels coloured by gradient magnitude, and the
+    gradient direction of the nearest edge at every pixel (degrees, cyclic colours); bottom
+    row: the distance-field pyramid, one panel per level, each in its own pixels and colour
+    scale (square root, clipped at its 99th percentile). ``dpi``: pixels per inch (default
+    120; a panel is 4.6 inches wide).
+    """
+    img = np.asarray(gray)
+    if img.ndim != 2:
+        raise ValueError(f"gray must be a 2-D (H, W) image, got shape {img.shape}")
+    h, w = img.shape
+    if tuple(frame.dist[0].shape) != (h, w):
+        raise ValueError(f"gray is {w}x{h} but the frame's level 0 is "
+                         f"{frame.dist[0].shape[1]}x{frame.dist[0].shape[0]} (width x height)")
+    uv = np.asarray(frame.edge_uv)
+    mag = np.asarray(frame.edge_mag, np.float64)
+    if uv.ndim != 2 or uv.shape[1] != 2 or mag.shape != (uv.shape[0],):
+        raise ValueError(f"frame.edge_uv must be (N, 2) and edge_mag (N,), got {uv.shape} and "
+                         f"{mag.shape}")
+    import matplotlib as mpl
+    from matplotlib.colors import PowerNorm
+
+    levels = len(frame.dist)
+    cols = max(3, levels)
+    panel = 4.6
+    fig = _figure((panel * cols, 2 * panel * h / w + 1.2), layout="constrained")
+    axes = fig.subplots(2, cols, squeeze=False)
+    for ax in axes.ravel():
+        ax.set_xticks([])
+        ax.set_yticks([])
+
+    ax = axes[0, 0]
+    ax.imshow(img, cmap="gray", interpolation="antialiased")
+    ax.set_title(f"(a) gray image, {w}x{h} px", fontsize=11)
+
+    ax = axes[0, 1]
+    edge_img = np.full((h, w), np.nan)
+    cols_u = np.clip(np.round(uv[:, 0]).astype(int), 0, w - 1)
+    rows_v = np.clip(np.round(uv[:, 1]).astype(int), 0, h - 1)
+    edge_img[rows_v, cols_u] = mag
+    cmap = mpl.colormaps["viridis"].with_extremes(bad="black")
+    vmax = float(np.percentile(mag, 99)) if mag.size else 1.0
+    im = ax.imshow(edge_img, cmap=cmap, vmin=0.0, vmax=max(vmax, 1e-9), interpolation="nearest")
+    ax.set_title(f"(b) Canny edges: {uv.shape[0]} pixels", fontsize=11)
+    fig.colorbar(im, ax=ax, shrink=0.85, label="gradient magnitude (Sobel, 8-bit units)")
+
+    ax = axes[0, 2]
+    g = np.asarray(frame.nearest_grad, np.float64)
+    angle = np.degrees(np.arctan2(g[..., 1], g[..., 0]))
+    angle = np.where(np.hypot(g[..., 0], g[..., 1]) > 0, angle, np.nan)
+    im = ax.imshow(angle, cmap=mpl.colormaps["twilight"].with_extremes(bad="black"),
+                   vmin=-180.0, vmax=180.0, interpolation="nearest")
+    ax.set_title("(c) gradient direction of the nearest edge", fontsize=11)
+    fig.colorbar(im, ax=ax, shrink=0.85, ticks=[-180, -90, 0, 90, 180],
+                 label="atan2(g_v, g_u) (degrees)")
+
+    for level, field in enumerate(frame.dist):
+        ax = axes[1, level]
+        d = np.asarray(field, np.float64)
+        top = float(np.percentile(d, 99)) if d.size else 1.0
+        # square-root colour scale: the few pixels near edges, which the residuals read,
+        # get as much of the colour range as the wide empty regions
+        im = ax.imshow(d, cmap="magma", norm=PowerNorm(0.5, vmin=0.0, vmax=max(top, 1e-9)),
+                       interpolation="antialiased")
+        ax.set_title(f"({chr(ord('d') + level)}) distance field, level {level}: "
+                     f"{d.shape[1]}x{d.shape[0]}", fontsize=11)
+        fig.colorbar(im, ax=ax, shrink=0.85, extend="max",
+                     label=f"distance to nearest edge (level-{level} px)")
+    for ax in axes[1, levels:]:
+        ax.set_axis_off()
+    if title:
+        fig.suptitle(title, fontsize=12)
+    return _save(fig, path, dpi)
+
+
+# ---------------------------------------------------------------------------- benchmarks
+
+#: Keys every row passed to :func:`plot_benchmark` must have.
+BENCH_KEYS = ("method", "sequence", "ate_rmse_m", "warm_median_ms")
+
+
+def plot_benchmark(rows: Sequence[Mapping[str, Any]], path: str | os.PathLike[str], *,
+                   dpi: float | None = None) -> Path:
+    """Time per frame vs accuracy per method (EdgeVO Fig. 1d across methods and variants).
+
+    rows: ``scripts/bench.py``'s ``results``, each with the keys in :data:`BENCH_KEYS`
+    (``ate_rmse_m`` in metres, ``warm_median_ms`` the warm median wall time per frame in
+    ms); rows marked ``missing`` or ``error`` and rows with null / NaN values are skipped.
+    One marker per (method, sequence), labelled with the method; edgevo variants (``kind``
+    ``edgevo``) are circles, peers squares; one colour per sequence. The time axis is
+    logarithmic when the times span more than a factor of 8. Writes a PNG to ``path``
+    (``dpi``: pixels per inch, default 120; 9 x 5.5 inches) and returns the path.
+    ValueError when a row lacks a key or no row has both numbers.
+    """
+    if not rows:
+        raise ValueError("plot_benchmark needs at least one row")
+    usable = []
+    for i, row in enumerate(rows):
+        if "missing" in row or "error" in row:
+            continue
+        missing = [k for k in BENCH_KEYS if k not in row]
+        if missing:
+            raise ValueError(f"plot_benchmark: row {i} ({row.get('method', '?')!r}) lacks "
+                             f"key(s) {', '.join(missing)}; every row needs "
+                             f"{', '.join(BENCH_KEYS)}")
+        x, y = _num(row["warm_median_ms"]), _num(row["ate_rmse_m"]) * 1e3
+        if math.isfinite(x) and math.isfinite(y) and x > 0:
+            usable.append((row, x, y))
+    if not usable:
+        raise ValueError("plot_benchmark: no row has both an ATE and a time per frame "
+                         "(all missing, failed or null)")
+    sequences = list(dict.fromkeys(str(r["sequence"]) for r, _, _ in usable))
+    colours = [f"C{k % 10}" for k in range(len(sequences))]
+    fig = _figure((9.0, 5.5), layout="constrained")
+    ax = fig.subplots()
+    for seq, colour in zip(sequences, colours, strict=True):
+        pts = [(r, x, y) for r, x, y in usable if str(r["sequence"]) == seq]
+        for r, x, y in pts:
+            marker = "o" if r.get("kind") == "edgevo" else "s"
+            ax.plot(x, y, marker=marker, markersize=8, color=colour, linestyle="none")
+            ax.annotate(str(r["method"]), (x, y), textcoords="offset points", xytext=(6, 4),
+                        fontsize=9, color=colour)
+        ax.plot([], [], marker="o", linestyle="none", color=colour, label=seq)
+    xs = np.array([x for _, x, _ in usable])
+    if xs.max() / xs.min() > 8:
+        ax.set_xscale("log")
+    ax.set_xlabel("time per frame (ms, warm median, decoding excluded)")
+    ax.set_ylabel("ATE RMSE (mm)")
+    ax.set_title("time vs accuracy per method (circles: edgevo_jax variants, squares: peers)",
+                 fontsize=11)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.margins(x=0.15, y=0.12)
+    ax.legend(fontsize=9, title="sequence", title_fontsize=9)
+    return _save(fig, path, dpi)
+
+
+# ---------------------------------------------------------------------------- result files
+
+
+def _stats_records(runs: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """``edgevo run --stats`` dicts -> :data:`ABLATION_KEYS` records, one per (sequence,
+    selection, budget), ATE mean and std (ddof 1; None for one run) over the runs (seeds)."""
+    groups: dict[tuple[str, str, int | None], list[Mapping[str, Any]]] = {}
+    for s in runs:
+        cfg = s["config"]
+        mode = str(cfg["selection"])
+        budget = None if mode == "all" else int(cfg["num_edges"])
+        groups.setdefault((str(s["sequence"]), mode, budget), []).append(s)
+    out = []
+    for (seq, mode, budget), rs in groups.items():
+        ates = np.array([_num(r.get("ate_rmse_m")) for r in rs])
+        ates = ates[np.isfinite(ates)]
+        times = np.array([_num(r["ms_per_frame"]["median"]) for r in rs])
+        edges = np.array([_num(r.get("edges_used_mean")) for r in rs])
+        out.append({
+            "sequence": seq, "selection": mode, "num_edges": budget, "runs": len(rs),
+            "edges_used_mean": float(np.nanmean(edges)) if np.isfinite(edges).any() else None,
+            "ms_per_frame_median": float(np.nanmedian(times)) if np.isfinite(times).any()
+            else None,
+            "ate_rmse_m_mean": float(ates.mean()) if ates.size else None,
+            "ate_rmse_m_std": float(ates.std(ddof=1)) if ates.size > 1 else None,
+        })
+    return out
+
+
+def read_results(paths: Sequence[str | os.PathLike[str]]) -> tuple[str, list[dict[str, Any]]]:
+    """Read configuration results for :func:`plot_ablation` or :func:`plot_benchmark`.
+
+    Each path is one of: ``scripts/ablation_selection.py``'s ``ablation.json`` (its
+    ``aggregates``), ``scripts/bench.py``'s JSON (its ``results``), or ``edgevo run --stats``
+    JSON (one run: several of them, e.g. one per seed and budget, are aggregated per
+    (sequence, selection, num_edges)). Returns ``("ablation", records)`` (the records
+    :func:`plot_ablation` takes; ablation and stats files may be mixed) or
+    ``("bench", rows)``. FileNotFoundError for a missing file; ValueError naming the file
+    for invalid JSON, an unknown layout, or bench files mixed with the others.
+    """
+    if not paths:
+        raise ValueError("no result files given")
+    ablation: list[dict[str, Any]] = []
+    stats: list[Mapping[str, Any]] = []
+    bench: list[dict[str, Any]] = []
+    for p in map(Path, paths):
+        if not p.is_file():
+            raise FileNotFoundError(f"results file not found: {p}")
+        try:
+            data = json.loads(p.read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError) as err:
+            raise ValueError(f"{p}: not valid JSON ({err})") from None
+        if isinstance(data, dict) and isinstance(data.get("aggregates"), list):
+            ablation.extend(dict(r) for r in data["aggregates"])
+        elif isinstance(data, dict) and isinstance(data.get("results"), list):
+            bench.extend(dict(r) for r in data["results"])
+        elif (isinstance(data, dict) and isinstance(data.get("ms_per_frame"), dict)
+              and isinstance(data.get("config"), dict) and "sequence" in data):
+            stats.append(data)
+        else:
+            raise ValueError(
+                f"{p}: not a results file: expected scripts/ablation_selection.py JSON (key "
+                "'aggregates'), scripts/bench.py JSON (key 'results') or `edgevo run --stats` "
+                "JSON (keys 'sequence', 'ms_per_frame', 'config')")
+    if bench and (ablation or stats):
+        raise ValueError("bench.py results cannot be mixed with ablation or run statistics "
+                         "in one figure: plot them separately")
+    if bench:
+        return "bench", bench
+    return "ablation", ablation + _stats_records(stats)
