@@ -18,6 +18,13 @@ weights the paper adopts):
   without rotation) and w1 = 1/50, w2 = 1/25 px^-1: DSO's 0.02 / 0.04 weights, i.e. a new keyframe
   after ~50 px of general or ~25 px of translational flow; correspondences under 30 % of their
   running average; 1 s since the last keyframe (paper).
+- Local mapping: a window of 6 keyframes (paper: 5-7), activation per 20 px cell with
+  gradients within 30 degrees (paper); 256 active edges per keyframe (half the tracked ones:
+  n A = 1536 inverse depths keep one LM try at a few ms); 5 pose-only then 5 joint LM tries
+  per keyframe; DSO's rule of dropping a keyframe with under 5 % of its points in view.
+  The depth sensor's inverse depth is a measurement of each edge (sigma 0.01 / m: the
+  Kinect's disparity noise, ~1.4e-3 / m by Khoshelham and Elberink 2012, is constant in
+  inverse depth; edge pixels sit at depth discontinuities, so it is inflated ~7x).
 """
 
 from __future__ import annotations
@@ -59,6 +66,16 @@ class Config:
     kf_flow_t_weight: float = 0.04  # w2, on RMS flow without rotation (px)
     kf_min_inlier_ratio: float = 0.3
     kf_max_interval_s: float = 1.0
+    # --- local mapping (local_map.py) ---
+    mapping: bool = False  # the sliding window of keyframes (off: see README, known limits)
+    window_size: int = 6  # keyframes (paper: 5-7)
+    active_per_keyframe: int = 256  # active edge slots each keyframe brings to the window
+    activation_cell: int = 20  # px (paper)
+    activation_max_angle_deg: float = 30.0  # gradient agreement for activation (paper)
+    mapping_iterations: int = 5  # pose-only LM tries, then as many joint ones
+    mapping_intrinsics: bool = False  # refine fx, fy, cx, cy in the window, track with them
+    drop_visible_ratio: float = 0.05  # a keyframe with fewer edges in view of the newest goes
+    mapping_depth_sigma: float = 0.01  # 1/m: the sensor's inverse depth as a prior (0: none)
     # --- determinism ---
     seed: int = 0
 
@@ -80,6 +97,11 @@ class Config:
             raise ValueError("Config needs logdet_lambda > 0 and 0 < greedy_epsilon < 1")
         if not 0.0 < self.min_depth < self.max_depth:
             raise ValueError("Config needs 0 < min_depth < max_depth")
+        if self.window_size < 3:
+            raise ValueError("Config.window_size must be at least 3 (the newest two stay)")
+        for name in ("active_per_keyframe", "activation_cell", "mapping_iterations"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"Config.{name} must be positive")
 
     @property
     def edge_slots(self) -> int:

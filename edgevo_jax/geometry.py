@@ -35,3 +35,11 @@ def rotation_angle_np(T: np.ndarray) -> float:
     """Rotation angle (rad) of a 4x4 rigid transform."""
     c = (np.trace(T[:3, :3]) - 1.0) / 2.0
     return float(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+def orthonormalise_np(T: np.ndarray) -> np.ndarray:
+    """T (4, 4) with its rotation block projected back onto SO(3) (float32 round-off)."""
+    u, _, vt = np.linalg.svd(T[:3, :3])
+    out = T.copy()
+    out[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    return out

@@ -57,6 +57,9 @@ class WindowProblem(NamedTuple):
     g(p) . g(p') >= eta, p' the nearest edge to the projection): grad (n, 2, A) the hosted
     edges' normalised image gradients and nearest_grad (n, H, W, 2) int8 each keyframe's
     nearest-edge gradient map (preprocess.Frame.nearest_grad). None: no such test.
+    rho_prior (n, A), optional: measured inverse depths (the depth sensor's), which
+    MappingConfig.depth_prior_sigma turns into the prior term 0.5 ((rho - rho_prior) / sigma)^2
+    per active edge. None: no depth measurement.
     """
 
     poses: jnp.ndarray
@@ -67,6 +70,7 @@ class WindowProblem(NamedTuple):
     intrinsics: jnp.ndarray
     grad: jnp.ndarray | None = None
     nearest_grad: jnp.ndarray | None = None
+    rho_prior: jnp.ndarray | None = None
 
     @property
     def camera(self) -> Intrinsics:
@@ -101,7 +105,11 @@ class MappingConfig(NamedTuple):
     step_tol: stop once a step's norm is below it; min_rho: floor of updated inverse depths;
     refine_depths, refine_intrinsics: which variables move (poses always do);
     warmup_iterations: pose-only tries before the joint ones (see ``refine``); eta: the
-    gradient-consistency threshold (used when the problem carries gradients).
+    gradient-consistency threshold (used when the problem carries gradients);
+    depth_prior_sigma: standard deviation (1/m, against residuals in pixels) of a measured
+    inverse depth, used when the problem carries ``rho_prior`` (0: none). An edge's
+    distance residual constrains its depth only across the edge: where the epipolar line
+    runs along the edge nothing else holds the depth.
     """
 
     iterations: int = 10
@@ -116,6 +124,7 @@ class MappingConfig(NamedTuple):
     refine_intrinsics: bool = True
     warmup_iterations: int = 0
     eta: float = 0.6
+    depth_prior_sigma: float = 0.0
 
     @classmethod
     def from_config(cls, config: Config, **changes: object) -> MappingConfig:
@@ -295,6 +304,27 @@ def _blocks(e: EdgeResiduals, considered: jnp.ndarray, mask: jnp.ndarray,
     return NormalEquations(H_cc, H_cp, h_pp, b_c, b_p, cost, jnp.sum(mask), mask)
 
 
+def _depth_prior(problem: WindowProblem, cfg: MappingConfig,
+                 hosts: jnp.ndarray | None = None):
+    """(h_pp, b_p, cost) of the measured-depth prior 0.5 sum ((rho - rho_prior) / sigma)^2 over
+    the valid edges (of ``hosts`` only, when given), or None without one."""
+    if problem.rho_prior is None or cfg.depth_prior_sigma <= 0:
+        return None
+    on = problem.valid if hosts is None else problem.valid & hosts[:, None]
+    w = jnp.where(on, 1.0 / cfg.depth_prior_sigma ** 2, 0.0).astype(problem.rho.dtype)
+    d = jnp.where(on, problem.rho - problem.rho_prior, 0.0)
+    return (w.reshape(-1), (w * d).reshape(-1), 0.5 * jnp.sum(w * d * d))
+
+
+def _with_depth_prior(ne: NormalEquations, problem: WindowProblem, cfg: MappingConfig,
+                      hosts: jnp.ndarray | None = None) -> NormalEquations:
+    terms = _depth_prior(problem, cfg, hosts)
+    if terms is None:
+        return ne
+    h, b, cost = terms
+    return ne._replace(h_pp=ne.h_pp + h, b_p=ne.b_p + b, cost=ne.cost + cost)
+
+
 def _considered(e: EdgeResiduals, hosts: jnp.ndarray | None) -> jnp.ndarray:
     n = e.r.shape[0]
     return e.considered if hosts is None else e.considered & hosts[pair_hosts(n)][:, :, None]
@@ -322,7 +352,7 @@ def normal_equations(
     e = edge_residuals(problem, cfg.eta)
     considered = _considered(e, hosts)
     inl = _inliers(e, considered, cfg) if mask is None else mask & considered & e.ok
-    return _blocks(e, considered, inl, cfg)
+    return _with_depth_prior(_blocks(e, considered, inl, cfg), problem, cfg, hosts)
 
 
 def schur_solve(
@@ -500,8 +530,11 @@ def refine(
     def system(p: WindowProblem, prev_mask: jnp.ndarray):
         """Blocks at p (own inliers, prior added) and the energy with prev_mask's inliers."""
         e = edge_residuals(p, cfg.eta)
-        ne = _blocks(e, e.considered, _inliers(e, e.considered, cfg), cfg)
-        fixed_cost = _robust_cost(e, e.considered, prev_mask, cfg)
+        ne = _with_depth_prior(_blocks(e, e.considered, _inliers(e, e.considered, cfg), cfg),
+                               p, cfg)
+        terms = _depth_prior(p, cfg)
+        fixed_cost = _robust_cost(e, e.considered, prev_mask, cfg) + (
+            0.0 if terms is None else terms[2])
         ne_p = _with_prior(ne, p, prior)
         return ne_p, fixed_cost + (ne_p.cost - ne.cost)
 
@@ -576,25 +609,49 @@ def marginalize_keyframe(
     keyframe, plus the previous ``prior`` (H kept, gradient H dx + b); the residuals of other
     keyframes' edges seen in the dropped keyframe are discarded, as in DSO (marginalising them
     would couple the remaining depths into the prior). Then ``marginalize`` (Schur complement,
-    Jacobi-scaled pseudo-inverse). Linearised once, here: the returned prior's H is the
-    first-estimate one. The result is in the layout of ``remove_keyframe(problem,
-    drop_index)`` (its linearisation point: the current remaining poses and intrinsics).
-    Cost: O((6 n + 4 + A)^2) memory and O((6 + A)^3) for the pseudo-inverse (an eigh),
-    once per dropped keyframe: ~17 ms warm for n = 6, A = 256 in float32 on a 2-core CPU
-    (the float32 prior is within 1e-5 of the float64 one there).
+    Jacobi-scaled pseudo-inverse of the pose block, after the depths' diagonal block).
+    Linearised once, here: the returned prior's H is the first-estimate one. The result is
+    in the layout of ``remove_keyframe(problem, drop_index)`` (its linearisation point: the
+    current remaining poses and intrinsics).
+    Cost: the normal equations plus O(m^2 A) for the depths and a 6 x 6 pseudo-inverse.
     """
     n, _, A = problem.uv.shape
     m = 6 * n + 4
     hosts = jnp.arange(n) == drop_index
     ne = _with_prior(normal_equations(problem, config, hosts=hosts), problem, prior)
     cols = slice(drop_index * A, (drop_index + 1) * A)
-    Hcp = ne.H_cp[:, cols]
-    H = jnp.block([[ne.H_cc, Hcp], [Hcp.T, jnp.diag(ne.h_pp[cols])]])
-    b = jnp.concatenate([ne.b_c, ne.b_p[cols]])
+    Hcp, h_pp = ne.H_cp[:, cols], ne.h_pp[cols]
+    # the depths first (diagonal block: 1 / h, zero for unobserved slots), then the pose's
+    # 6 x 6 block: the same Schur complement as eliminating both at once, without the
+    # (6 + A)^2 pseudo-inverse (whose eigh took up to a second on some windows)
+    seen = h_pp > 1e-12
+    inv = jnp.where(seen, 1.0 / jnp.where(seen, h_pp, 1.0), 0.0)
+    H = ne.H_cc - (Hcp * inv) @ Hcp.T
+    b = ne.b_c - (Hcp * inv) @ ne.b_p[cols]
     pose = np.arange(6 * drop_index, 6 * drop_index + 6)
     keep = np.setdiff1d(np.arange(m), pose)
-    drop = np.concatenate([pose, m + np.arange(A)])
-    Hm, bm = marginalize(H, b, keep, drop)
+    Hm, bm = marginalize(0.5 * (H + H.T), b, keep, pose)
     rest = remove_keyframe(problem, drop_index)
     return Prior(H=Hm, b=bm, poses=rest.poses, intrinsics=rest.intrinsics,
                  mask=jnp.ones(m - 6, bool))
+
+
+def marginalize_edges(
+    problem: WindowProblem, edges: jnp.ndarray, config: MappingConfig, prior: Prior
+) -> Prior:
+    """Prior left by marginalising the inverse depths of ``edges`` (n, A) bool (their
+    residuals in every keyframe of the window), added to ``prior`` (whose H is kept, its
+    gradient taken at the current estimate: first-estimate Jacobians). The depth block is
+    diagonal, so the Schur complement needs no inverse but 1 / h_pp. Linearisation point: the
+    current poses and intrinsics."""
+    n = problem.poses.shape[0]
+    inl = normal_equations(problem, config).mask
+    ne = normal_equations(problem, config, mask=inl & edges[pair_hosts(n)])
+    seen = ne.h_pp > 1e-12
+    inv = jnp.where(seen, 1.0 / jnp.where(seen, ne.h_pp, 1.0), 0.0)
+    W = ne.H_cp * inv
+    H_p, g_p, _ = prior_terms(problem.poses, problem.intrinsics, prior)
+    H = H_p + ne.H_cc - W @ ne.H_cp.T
+    b = g_p + ne.b_c - W @ ne.b_p
+    return Prior(H=0.5 * (H + H.T), b=b, poses=problem.poses, intrinsics=problem.intrinsics,
+                 mask=jnp.ones_like(prior.mask))

@@ -152,9 +152,11 @@ def summarise(run: RunResult, seq: TumSequence) -> dict:
 
     ms_per_frame covers warm frames: from the third on (the first only becomes the keyframe,
     the second compiles), image decoding excluded; select_ms covers every keyframe but the
-    first (whose selection compiles).
+    first (whose selection compiles); mapping_ms every keyframe after the first
+    window_size + 1 (activation, refinement and marginalisation compile on those).
     """
     warm = np.asarray(run.frame_ms[2:], np.float64)
+    mapping_warm = run.config.window_size + 1 if run.config is not None else 0
     stats: dict = {
         "sequence": seq.name,
         "frames": len(run.results),
@@ -167,6 +169,9 @@ def summarise(run: RunResult, seq: TumSequence) -> dict:
         "decode_ms": _describe(run.decode_ms[2:]),
         # the first keyframe's selection compiles: leave it out as the first frames are
         "select_ms": _describe([r.select_ms for r in run.results if r.select_ms is not None][1:]),
+        # per keyframe; the first window_size keyframes compile the window's programs
+        "mapping_ms": _describe(
+            [r.mapping_ms for r in run.results if r.mapping_ms is not None][mapping_warm:]),
         "edges_used_mean": float(np.mean([r.edges_used for r in run.results[1:]]))
         if len(run.results) > 1 else float("nan"),
         "config": dataclasses.asdict(run.config) if run.config is not None else None,

@@ -16,8 +16,9 @@ import numpy as np
 
 from .camera import Intrinsics
 from .config import Config
-from .geometry import inverse_np
+from .geometry import inverse_np, orthonormalise_np
 from .keyframes import keyframe_reason
+from .local_map import LocalMap
 from .preprocess import Frame, preprocess
 from .selection import keyframe_edges
 from .solve import KeyframeEdges, track
@@ -32,8 +33,9 @@ class FrameResult:
     """What tracking one frame gives: pose T_world_cam (4, 4, float64), tracking state
     (``OK`` / ``LOST``) and the reason when lost, covariance (6, 6) of a left twist [v, w]
     of T_cur_kf, level-0 inliers, whether the frame became a keyframe (and why), the number of
-    keyframe edges it was tracked with, the edge selection time when it became a keyframe,
-    and host timings in ms (preprocess; solve = from dispatch to read-back; total)."""
+    keyframe edges it was tracked with, the edge selection and local mapping times when it
+    became a keyframe (mapping None when off), and host timings in ms (preprocess; solve =
+    from dispatch to read-back; total). A keyframe's pose is the window's refined one."""
 
     timestamp: float
     pose: np.ndarray
@@ -44,6 +46,7 @@ class FrameResult:
     keyframe: str | None
     edges_used: int
     select_ms: float | None
+    mapping_ms: float | None
     preprocess_ms: float
     solve_ms: float
     total_ms: float
@@ -96,6 +99,7 @@ class Odometry:
         self._last_t: float | None = None
         self._in_flight = False
         self.num_keyframes = 0
+        self.local_map: LocalMap | None = None  # made with the first keyframe (image size)
 
     # -- public -------------------------------------------------------------------------
     def track(self, rgb: np.ndarray, depth: np.ndarray, timestamp: float) -> FrameResult:
@@ -136,12 +140,12 @@ class Odometry:
         self._in_flight = False
         frame, timestamp = pending.frame, pending.timestamp
         if pending.output is None:  # first frame (or no usable keyframe yet)
-            select_ms = self._make_keyframe(frame, timestamp, pending.predicted)
-            self._push(pending.predicted)
-            made = select_ms is not None
-            state, reason = (OK, None) if made else (LOST, "no edges with depth")
-            return self._result(pending, pending.predicted, state, reason, 0, None,
-                                "first" if made else None, 0, select_ms, time.perf_counter())
+            made_kf = self._make_keyframe(frame, timestamp, pending.predicted)
+            pose = pending.predicted if made_kf is None else made_kf[0]
+            self._push(pose)
+            state, reason = (OK, None) if made_kf else (LOST, "no edges with depth")
+            return self._result(pending, pose, state, reason, 0, None,
+                                "first" if made_kf else None, 0, made_kf, time.perf_counter())
         res = jax.device_get(pending.output)
         t_solve = time.perf_counter()
         kf = self._kf
@@ -153,7 +157,7 @@ class Odometry:
         elif inliers < self.config.min_inliers:
             lost = f"too few inliers ({inliers})"
         if lost is None:
-            pose = kf.pose @ inverse_np(_orthonormalise(T_c_k))
+            pose = kf.pose @ inverse_np(orthonormalise_np(T_c_k))
             reason = keyframe_reason(
                 flow=float(res.flow), flow_t=float(res.flow_t), inliers=inliers,
                 inlier_mean=float(np.mean(kf.inlier_counts)) if kf.inlier_counts else None,
@@ -163,12 +167,13 @@ class Odometry:
         else:
             pose, reason = pending.predicted, "lost"
         used = kf.num_edges
-        select_ms = self._make_keyframe(frame, timestamp, pose) if reason else None
-        made = reason if select_ms is not None else None
+        made_kf = self._make_keyframe(frame, timestamp, pose) if reason else None
+        if made_kf is not None:
+            pose = made_kf[0]  # refined in the window
         self._push(pose)
         cov = np.asarray(res.covariance, np.float64) if lost is None else None
         return self._result(pending, pose, OK if lost is None else LOST, lost, inliers, cov,
-                            made, used, select_ms, t_solve)
+                            reason if made_kf else None, used, made_kf, t_solve)
 
     # -- internals ------------------------------------------------------------------------
     def _predict(self) -> np.ndarray:
@@ -181,9 +186,11 @@ class Odometry:
     def _push(self, pose: np.ndarray) -> None:
         self._poses = (self._poses + [pose])[-2:]
 
-    def _make_keyframe(self, frame: Frame, timestamp: float, pose: np.ndarray) -> float | None:
-        """Make the frame the keyframe; returns the edge selection time (ms), or None when it
-        has too few usable edges (the old keyframe stays)."""
+    def _make_keyframe(self, frame: Frame, timestamp: float, pose: np.ndarray
+                       ) -> tuple[np.ndarray, float, float | None] | None:
+        """Make the frame the keyframe: select its edges, hand it to the local map. Returns
+        its (refined) pose, the selection and mapping times (ms), or None when it has too few
+        usable edges (the old keyframe stays)."""
         t0 = time.perf_counter()
         # prior motion for the selection: constant velocity, T_next_kf = T_w_kf^-1 T_w_prev
         T_prior = inverse_np(pose) @ self._poses[-1] if self._poses else np.eye(4)
@@ -192,26 +199,29 @@ class Odometry:
         n = int(edges.valid.sum())
         if n < self.config.min_inliers:
             return None
-        edges = KeyframeEdges(*(jnp.asarray(a) for a in edges))
-        self._kf = _Keyframe(timestamp, pose, edges, n)
+        t1 = time.perf_counter()
+        mapping_ms = None
+        if self.config.mapping:
+            if self.local_map is None:
+                self.local_map = LocalMap(self.config, np.asarray(self.intrinsics), frame.shape)
+            pose, _ = self.local_map.add_keyframe(pose, edges, frame)
+            if self.config.mapping_intrinsics:
+                self.intrinsics = self.local_map.camera
+            mapping_ms = (time.perf_counter() - t1) * 1e3
+        self._kf = _Keyframe(timestamp, pose, KeyframeEdges(*(jnp.asarray(a) for a in edges)), n)
         self.num_keyframes += 1
-        return (time.perf_counter() - t0) * 1e3
+        return pose, (t1 - t0) * 1e3, mapping_ms
 
-    def _result(self, pending, pose, state, reason, inliers, cov, kf, used, select_ms,
+    def _result(self, pending, pose, state, reason, inliers, cov, kf, used, made_kf,
                 t_solve) -> FrameResult:
         t_end = time.perf_counter()
         solve_ms = (t_solve - pending.t_submit) * 1e3
         return FrameResult(
             timestamp=pending.timestamp, pose=pose, state=state, reason=reason, inliers=inliers,
-            covariance=cov, keyframe=kf, edges_used=used, select_ms=select_ms,
+            covariance=cov, keyframe=kf, edges_used=used,
+            select_ms=made_kf[1] if made_kf else None,
+            mapping_ms=made_kf[2] if made_kf else None,
             preprocess_ms=pending.preprocess_ms, solve_ms=solve_ms,
             total_ms=pending.preprocess_ms + (t_end - pending.t_submit) * 1e3,
         )
 
-
-def _orthonormalise(T: np.ndarray) -> np.ndarray:
-    """Project the rotation block back onto SO(3) (float32 round-off from the device)."""
-    u, _, vt = np.linalg.svd(T[:3, :3])
-    out = T.copy()
-    out[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
-    return out

@@ -23,6 +23,7 @@ from edgevo_jax.mapping import (
     edge_residual,
     edge_residuals,
     marginalize,
+    marginalize_edges,
     marginalize_keyframe,
     no_prior,
     normal_equations,
@@ -439,7 +440,7 @@ def test_sliding_the_window_keeps_it_where_the_full_refinement_put_it(scene, ref
             xi[3:] *= np.deg2rad(0.2) / np.linalg.norm(xi[3:])
             poses[k] = np.asarray(jaxlie.SE3.exp(xi).as_matrix()) @ poses[k]
         window = WindowProblem(*(
-            a if name == "intrinsics" else jnp.concatenate([a, b])
+            a if name == "intrinsics" or a is None else jnp.concatenate([a, b])
             for name, a, b in zip(WindowProblem._fields, rest, new, strict=True)))
         window = window._replace(poses=jnp.asarray(poses))
         out, stats = refine_jit(window, WINDOW_CONFIG,
@@ -455,3 +456,30 @@ def test_sliding_the_window_keeps_it_where_the_full_refinement_put_it(scene, ref
         assert max(dt) < 1e-3, dt
         assert dc.max() < 0.5, dc
         assert err_new < 1.5e-3, err_new  # from 3 mm
+
+
+def test_marginalizing_edges_equals_the_dense_schur_complement(refined):
+    """marginalize_edges (diagonal depth block, 1 / h) equals ``marginalize`` of the dense
+    system of those edges' residuals, camera variables kept, their depths dropped; with a
+    previous prior, its terms are added."""
+    _, full, _ = refined
+    with jax.enable_x64(True):
+        n, _, A = full.uv.shape
+        rng = np.random.default_rng(7)
+        edges = np.asarray(full.valid) & (rng.random((n, A)) < 0.3)
+        inl = normal_equations(full, WINDOW_CONFIG).mask
+        ne = normal_equations(full, WINDOW_CONFIG, mask=inl & jnp.asarray(edges)[pair_hosts(n)])
+        H = np.block([[np.asarray(ne.H_cc), np.asarray(ne.H_cp)],
+                      [np.asarray(ne.H_cp).T, np.diag(np.asarray(ne.h_pp))]])
+        b = np.concatenate([np.asarray(ne.b_c), np.asarray(ne.b_p)])
+        m = 6 * n + 4
+        drop = m + np.flatnonzero(edges.reshape(-1))
+        H_ref, b_ref = marginalize(jnp.asarray(H), jnp.asarray(b), np.arange(m), drop)
+        out = marginalize_edges(full, jnp.asarray(edges), WINDOW_CONFIG, no_prior(full))
+        scale = np.abs(np.asarray(H_ref)).max()
+        np.testing.assert_allclose(out.H, H_ref, atol=1e-8 * scale)
+        np.testing.assert_allclose(out.b, b_ref, atol=1e-8 * np.abs(np.asarray(b_ref)).max())
+        # a previous prior adds its H and its gradient at the current estimate
+        prior = out._replace(poses=full.poses, intrinsics=full.intrinsics)
+        twice = marginalize_edges(full, jnp.asarray(edges), WINDOW_CONFIG, prior)
+        np.testing.assert_allclose(twice.H, 2 * np.asarray(out.H), atol=1e-8 * scale)

@@ -1,0 +1,310 @@
+"""The sliding window of keyframes that the tracker hands each new keyframe to (EdgeVO's local
+mapping): activation, joint refinement, marginalisation, on the host around three jitted calls.
+
+On a new keyframe (``LocalMap.add_keyframe``):
+1. Window full (``window_size`` keyframes): one keyframe leaves. The newest two always stay;
+   of the others, one with under ``drop_visible_ratio`` of its edges visible in the newest
+   keyframe goes (the fewest first), else the one whose centre is farthest from the newest's.
+   It is marginalised (``mapping.marginalize_keyframe``: its pose and the inverse depths of
+   its active edges, through the Schur complement) into the prior, and so are the active
+   edges of the remaining keyframes that neither of the newest two sees (their depth block is
+   diagonal, so that Schur complement is H_cc - H_cp D^-1 H_cp^T, no inverse but 1 / d).
+   Linearisation: first-estimate Jacobians: a prior's H is fixed when it is made; its
+   gradient moves with the offset from that point (``mapping.prior_terms``).
+2. The new keyframe joins; the tracked edges of the earlier ones are re-projected into it
+   (its level-0 distance field and nearest-edge gradients): each edge seen there under the
+   residual gate and with consistent gradients counts one more track, and edges are activated
+   per ``activation_cell`` cell by the three rules of ``activation.activate``.
+3. With a full window: ``mapping.refine`` moves the poses, the active inverse depths and
+   (``mapping_intrinsics``) the intrinsics, the oldest keyframe held fixed; each keyframe keeps
+   its ``active_per_keyframe`` longest-tracked active edges in the problem (fixed shapes: one
+   compilation). The tracker then continues from the refined pose of the new keyframe.
+
+Every array handed to JAX has a fixed shape per configuration: one compilation each for the
+activation, the refinement and the two marginalisations.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import jax
+import jax.numpy as jnp
+import jaxlie
+import numpy as np
+
+from .activation import activate, reproject
+from .camera import Intrinsics, unproject
+from .config import Config
+from .geometry import inverse_np, orthonormalise_np
+from .mapping import (
+    MappingConfig,
+    Prior,
+    WindowProblem,
+    append_keyframe_to_prior,
+    marginalize_edges,
+    marginalize_keyframe,
+    no_prior,
+    refine,
+    remove_keyframe,
+)
+from .preprocess import Frame
+from .solve import KeyframeEdges
+
+
+@dataclass
+class _WindowKeyframe:
+    """One keyframe of the window (host copies, float64 pose): its tracked edges (K slots) are
+    the candidates for activation; ``active``, ``track`` and the refined ``rho`` per slot."""
+
+    pose: np.ndarray  # T_w_k
+    uv: np.ndarray  # (2, K)
+    rho: np.ndarray  # (K,)
+    grad: np.ndarray  # (2, K)
+    valid: np.ndarray  # (K,)
+    dist0: jnp.ndarray  # (H, W) level-0 distance field, on device
+    nearest_grad: jnp.ndarray  # (H, W, 2) int8, on device
+    active: np.ndarray = field(default=None)  # type: ignore[assignment]
+    track: np.ndarray = field(default=None)  # type: ignore[assignment]
+    rho_sensor: np.ndarray = field(default=None)  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        k = self.rho.shape[0]
+        self.rho_sensor = self.rho.copy() if self.rho_sensor is None else self.rho_sensor
+        self.active = np.zeros(k, bool) if self.active is None else self.active
+        self.track = np.zeros(k, np.int32) if self.track is None else self.track
+
+
+def mapping_config(config: Config) -> MappingConfig:
+    """The window refinement's numbers from the run's Config (level-0 Huber radius, gate and
+    eta; ``mapping_iterations`` LM tries after as many pose-only ones)."""
+    return MappingConfig.from_config(
+        config, iterations=config.mapping_iterations,
+        warmup_iterations=config.mapping_iterations, refine_intrinsics=config.mapping_intrinsics,
+        depth_prior_sigma=config.mapping_depth_sigma,
+    )
+
+
+def _candidate_slots(edges: KeyframeEdges, k: int):
+    """A keyframe's tracked edges as K = ``k`` activation candidates (every keyframe the same
+    K: fixed shapes): all of them with the selecting modes; with ``selection=all``, K evenly
+    spaced ones (deterministic). Returns uv (2, K), rho (K,), grad (2, K), valid (K,)."""
+    idx = np.flatnonzero(np.asarray(edges.valid))
+    if idx.size > k:
+        idx = idx[np.linspace(0, idx.size - 1, k).round().astype(int)]
+    m = idx.size
+    uv, grad = np.zeros((2, k), np.float32), np.zeros((2, k), np.float32)
+    rho, valid = np.ones(k, np.float32), np.arange(k) < m
+    uv[:, :m] = np.asarray(edges.uv)[:, idx]
+    grad[:, :m] = np.asarray(edges.grad)[:, idx]
+    rho[:m] = np.asarray(edges.rho)[idx]
+    return uv, rho, grad, valid
+
+
+def _activation_step(intr, T_new_host, uv, rho, grad, valid, active, track, field_new,
+                     nearest_new, *, width, height, cell, max_angle_deg, gate):
+    """For (h, K) host edges re-projected into the new keyframe (T_new_host (h, 4, 4)): the
+    track counts, one more where an edge is seen again there (under the gate, gradients
+    within the angle), and the activation mask over the valid edges not active yet."""
+    def one(T, uv_h, rho_h, grad_h):
+        pts = unproject(intr, uv_h, rho_h)
+        return reproject(intr, jaxlie.SE3.from_matrix(T), pts, grad_h, field_new, nearest_new)
+
+    uv_new, r, cos, vis = jax.vmap(one)(T_new_host, uv, rho, grad)
+    seen = valid & vis & (r <= gate) & (cos >= math.cos(math.radians(max_angle_deg)))
+    track = track + seen.astype(track.dtype)
+    h, k = r.shape
+    act = activate(uv_new.transpose(1, 0, 2).reshape(2, h * k), r.reshape(-1), cos.reshape(-1),
+                   track.reshape(-1), (valid & ~active & vis).reshape(-1), width=width,
+                   height=height, cell=cell, max_angle_deg=max_angle_deg)
+    return track, act.reshape(h, k)
+
+
+_activation_jit = jax.jit(_activation_step, static_argnames=(
+    "width", "height", "cell", "max_angle_deg", "gate"))
+_refine_jit = jax.jit(refine, static_argnames=("config", "iterations"))
+_marginalize_keyframe_jit = jax.jit(marginalize_keyframe,
+                                    static_argnames=("drop_index", "config"))
+
+
+_marginalize_edges_jit = jax.jit(marginalize_edges, static_argnames="config")
+
+
+def _permute_prior(prior: Prior, order: np.ndarray) -> Prior:
+    """The prior in the layout of the window's keyframes taken in ``order``."""
+    n = order.size
+    idx = np.concatenate([(6 * order[:, None] + np.arange(6)).reshape(-1), 6 * n + np.arange(4)])
+    return Prior(H=prior.H[np.ix_(idx, idx)], b=prior.b[idx], poses=prior.poses[order],
+                 intrinsics=prior.intrinsics, mask=prior.mask[idx])
+
+
+@dataclass
+class LocalMap:
+    """The window of keyframes (module doc). ``intrinsics`` is the window's current estimate
+    (fx, fy, cx, cy); ``add_keyframe`` returns the new keyframe's refined pose."""
+
+    config: Config
+    intrinsics: np.ndarray
+    shape: tuple[int, int]
+    window: list[_WindowKeyframe] = field(default_factory=list)
+    prior: Prior | None = None
+
+    def __post_init__(self) -> None:
+        self.intrinsics = np.asarray(self.intrinsics, np.float32)
+        self._mcfg = mapping_config(self.config)
+
+    @property
+    def camera(self) -> Intrinsics:
+        """The window's intrinsics estimate as an Intrinsics of floats."""
+        return Intrinsics(*(float(x) for x in self.intrinsics))
+
+    def add_keyframe(self, pose: np.ndarray, edges: KeyframeEdges, frame: Frame
+                     ) -> tuple[np.ndarray, dict]:
+        """Take a new keyframe (pose T_w_k (4, 4); its tracked edges, numpy; its frame) into
+        the window; returns its pose after refinement and the step's stats (ms, inliers)."""
+        t0 = time.perf_counter()
+        cfg = self.config
+        stats: dict = {"refined": False}
+        if len(self.window) == cfg.window_size:
+            self._drop(pose)
+        uv, rho, grad, valid = _candidate_slots(edges, cfg.num_edges)
+        new = _WindowKeyframe(
+            pose=np.asarray(pose, np.float64), uv=uv, rho=rho, grad=grad, valid=valid,
+            dist0=jnp.asarray(frame.dist[0]), nearest_grad=jnp.asarray(frame.nearest_grad))
+        if self.prior is not None:
+            self.prior = append_keyframe_to_prior(self.prior, jnp.asarray(new.pose, jnp.float32))
+        self._activate(new)
+        self.window.append(new)
+        if len(self.window) == cfg.window_size:
+            stats.update(self._refine())
+        stats["ms"] = (time.perf_counter() - t0) * 1e3
+        return self.window[-1].pose, stats
+
+    # -- steps ----------------------------------------------------------------------------
+    def _activate(self, new: _WindowKeyframe) -> None:
+        """Re-project the window's edges into the new keyframe; count tracks; activate."""
+        if not self.window:
+            return
+        hosts = self._stack_hosts()
+        h = len(self.window)
+        T = np.stack([inverse_np(new.pose) @ kf.pose for kf in self.window]).astype(np.float32)
+        T = self._pad_hosts(T, np.eye(4, dtype=np.float32))
+        height, width = self.shape
+        track, act = _activation_jit(
+            self.camera, T, hosts["uv"], hosts["rho"], hosts["grad"], hosts["valid"],
+            hosts["active"], hosts["track"], new.dist0, new.nearest_grad,
+            width=width, height=height, cell=self.config.activation_cell,
+            max_angle_deg=float(self.config.activation_max_angle_deg),
+            gate=float(self.config.max_residual[0]))
+        track, act = np.asarray(track), np.asarray(act)
+        for k, kf in enumerate(self.window[:h]):
+            kf.track = track[k].astype(np.int32)
+            kf.active = kf.active | act[k]
+
+    def _problem(self) -> tuple[WindowProblem, list[np.ndarray]]:
+        """The window as a WindowProblem: each keyframe's longest-tracked active edges in
+        ``active_per_keyframe`` slots; returns it and the slots' edge indices per keyframe."""
+        A = self.config.active_per_keyframe
+        uv, rho, grad, valid, sensor, picks = [], [], [], [], [], []
+        for kf in self.window:
+            idx = np.flatnonzero(kf.active)
+            idx = idx[np.argsort(-kf.track[idx], kind="stable")[:A]]
+            picks.append(idx)
+            m = idx.size
+            u = np.zeros((2, A), np.float32)
+            g = np.zeros((2, A), np.float32)
+            r, r0 = np.ones(A, np.float32), np.ones(A, np.float32)
+            u[:, :m], g[:, :m], r[:m] = kf.uv[:, idx], kf.grad[:, idx], kf.rho[idx]
+            r0[:m] = kf.rho_sensor[idx]
+            uv.append(u)
+            grad.append(g)
+            rho.append(r)
+            sensor.append(r0)
+            valid.append(np.arange(A) < m)
+        problem = WindowProblem(
+            poses=jnp.asarray(np.stack([kf.pose for kf in self.window]), jnp.float32),
+            uv=jnp.asarray(np.stack(uv)), rho=jnp.asarray(np.stack(rho)),
+            valid=jnp.asarray(np.stack(valid)),
+            fields=jnp.stack([kf.dist0 for kf in self.window]),
+            intrinsics=jnp.asarray(self.intrinsics), grad=jnp.asarray(np.stack(grad)),
+            nearest_grad=jnp.stack([kf.nearest_grad for kf in self.window]),
+            rho_prior=jnp.asarray(np.stack(sensor)))
+        return problem, picks
+
+    def _refine(self) -> dict:
+        problem, picks = self._problem()
+        prior = self.prior if self.prior is not None else no_prior(problem)
+        out, st = _refine_jit(problem, self._mcfg, prior)
+        poses, rho, intr = jax.device_get((out.poses, out.rho, out.intrinsics))
+        if not (np.all(np.isfinite(poses)) and np.all(np.isfinite(rho))
+                and np.all(np.isfinite(intr))):
+            return {"refined": False, "note": "non-finite refinement, kept the estimate"}
+        for k, kf in enumerate(self.window):
+            if k != self._mcfg.gauge_index:  # float32 round trip: keep the fixed pose exact
+                kf.pose = orthonormalise_np(np.asarray(poses[k], np.float64))
+            kf.rho[picks[k]] = rho[k, :picks[k].size]
+        self.intrinsics = np.asarray(intr, np.float32)
+        return {"refined": True, "inliers": int(st["inliers"]),
+                "iterations": int(st["iterations"]), "cost_before": float(st["cost_before"]),
+                "cost_after": float(st["cost_after"])}
+
+    def _drop(self, new_pose: np.ndarray) -> None:
+        """Marginalise one keyframe (module doc) and the edges that the newest two (the
+        incoming keyframe, pose ``new_pose``, and the window's last) do not see."""
+        cfg = self.config
+        candidates = list(range(len(self.window) - 1))  # the window's last stays
+        visible = [self._visible(self.window[k], new_pose).sum()
+                   / max(int(self.window[k].valid.sum()), 1) for k in candidates]
+        if min(visible) < cfg.drop_visible_ratio:
+            drop = candidates[int(np.argmin(visible))]
+        else:
+            c = new_pose[:3, 3]
+            drop = candidates[int(np.argmax([np.linalg.norm(self.window[k].pose[:3, 3] - c)
+                                             for k in candidates]))]
+        order = np.array([drop] + [k for k in range(len(self.window)) if k != drop])
+        self.window = [self.window[k] for k in order]
+        problem, picks = self._problem()
+        prior = no_prior(problem) if self.prior is None else _permute_prior(self.prior, order)
+        prior = _marginalize_keyframe_jit(problem, 0, self._mcfg, prior)
+        self.window, rest, picks = self.window[1:], remove_keyframe(problem, 0), picks[1:]
+        stale = np.zeros(np.asarray(rest.valid).shape, bool)
+        for k, kf in enumerate(self.window[:-1]):
+            seen = self._visible(kf, new_pose) | self._visible(kf, self.window[-1].pose)
+            gone = picks[k][~seen[picks[k]]]
+            stale[k, :picks[k].size] = ~seen[picks[k]]
+            kf.active[gone] = False
+        if stale.any():
+            prior = _marginalize_edges_jit(rest, jnp.asarray(stale), self._mcfg, prior)
+        self.prior = prior
+
+    # -- helpers --------------------------------------------------------------------------
+    def _visible(self, host: _WindowKeyframe, T_w_target: np.ndarray) -> np.ndarray:
+        """(K,) the host's valid edges that project into the image of a camera at pose
+        T_w_target (numpy)."""
+        fx, fy, cx, cy = (float(x) for x in self.intrinsics)
+        z = 1.0 / np.where(host.valid, host.rho, 1.0)
+        P = np.stack([(host.uv[0] - cx) / fx * z, (host.uv[1] - cy) / fy * z, z])
+        T = inverse_np(T_w_target) @ host.pose
+        Q = T[:3, :3] @ P + T[:3, 3:]
+        front = Q[2] > 1e-6
+        zq = np.where(front, Q[2], 1.0)
+        u, v = fx * Q[0] / zq + cx, fy * Q[1] / zq + cy
+        height, width = self.shape
+        return host.valid & front & (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1)
+
+    def _pad_hosts(self, a: np.ndarray, fill: np.ndarray) -> np.ndarray:
+        """Stack of per-host arrays padded to window_size - 1 hosts (fixed shapes)."""
+        missing = self.config.window_size - 1 - a.shape[0]
+        return np.concatenate([a, np.broadcast_to(fill, (missing, *a.shape[1:]))]) \
+            if missing > 0 else a
+
+    def _stack_hosts(self) -> dict[str, np.ndarray]:
+        out = {}
+        for name, fill in (("uv", 0.0), ("rho", 1.0), ("grad", 0.0), ("valid", False),
+                           ("active", False), ("track", 0)):
+            a = np.stack([getattr(kf, name) for kf in self.window])
+            out[name] = self._pad_hosts(a, np.full(a.shape[1:], fill, a.dtype))
+        return out
+

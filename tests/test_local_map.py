@@ -1,0 +1,100 @@
+"""The local map (local_map.py) driven with real keyframes of the bundled clip: activation,
+refinement, marginalisation into a prior, and its wiring into the tracker."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+from edgevo_jax import Config
+from edgevo_jax.cli import BUNDLED_CLIP
+from edgevo_jax.datasets import load_sequence
+from edgevo_jax.datasets.tum import groundtruth_pose_at
+from edgevo_jax.io import poses7_to_matrices
+from edgevo_jax.local_map import LocalMap
+from edgevo_jax.preprocess import preprocess
+from edgevo_jax.runner import run_sequence, summarise
+from edgevo_jax.selection import keyframe_edges
+
+CONFIG = Config(mapping=True, window_size=3, mapping_iterations=3)
+
+
+@pytest.fixture(scope="module")
+def driven():
+    """Frames 0, 2, 4, 6, 8 of the bundled clip handed to a 3-keyframe window as keyframes at
+    their ground-truth poses, the newest nudged by 4 mm (as tracking would leave it)."""
+    seq = load_sequence(BUNDLED_CLIP)
+    lm = LocalMap(CONFIG, np.asarray(seq.intrinsics), (seq.height, seq.width))
+    steps = []
+    for n, i in enumerate(range(0, 10, 2)):
+        frame = preprocess(*seq.load_frame(i), CONFIG)
+        t = float(seq.timestamps[i])
+        gt = poses7_to_matrices(np.asarray(groundtruth_pose_at(seq, t))[None])[0]
+        pose = gt.copy()
+        pose[:3, 3] += np.array([0.004, -0.002, 0.0]) * (n > 0)
+        edges = keyframe_edges(frame, CONFIG, seed=n, intr=seq.intrinsics)
+        before = [kf.pose.copy() for kf in lm.window]
+        out, stats = lm.add_keyframe(pose, edges, frame)
+        steps.append({"gt": gt, "pose_in": pose, "pose_out": out, "stats": stats, "before": before,
+                      "prior": None if lm.prior is None else jax.device_get(lm.prior),
+                      "active": [int(kf.active.sum()) for kf in lm.window],
+                      "track": [int(kf.track.max()) for kf in lm.window]})
+    return lm, steps
+
+
+def test_window_fills_then_slides(driven):
+    lm, steps = driven
+    assert [len(s["active"]) for s in steps] == [1, 2, 3, 3, 3]
+    assert [s["stats"]["refined"] for s in steps] == [False, False, True, True, True]
+    assert steps[0]["prior"] is None and steps[2]["prior"] is None  # nothing dropped yet
+    for s in steps[3:]:
+        H = np.asarray(s["prior"].H)
+        assert H.shape == (6 * 3 + 4,) * 2  # in the layout of the window after the slide
+        np.testing.assert_allclose(H, H.T, atol=1e-6 * np.abs(H).max())
+        assert np.linalg.eigvalsh(H.astype(np.float64)).min() > -1e-4 * np.abs(H).max()
+        assert np.all(np.isfinite(np.asarray(s["prior"].b)))
+
+
+def test_edges_are_activated_and_tracked(driven):
+    _, steps = driven
+    # a keyframe's edges become active once a later keyframe sees them; the newest has none
+    for s in steps[1:]:
+        assert s["active"][-1] == 0 and all(a > 20 for a in s["active"][:-1]), s["active"]
+        assert max(s["track"][:-1]) >= 1
+
+
+def test_refinement_moves_poses_a_little_and_keeps_the_gauge(driven):
+    lm, steps = driven
+    for s in steps[2:]:
+        moved = np.linalg.norm(s["pose_out"][:3, 3] - s["pose_in"][:3, 3])
+        assert 0 < moved < 0.02 and np.all(np.isfinite(s["pose_out"]))
+        assert s["stats"]["inliers"] > 100
+    # intrinsics stay the calibration's unless mapping_intrinsics is on
+    np.testing.assert_array_equal(lm.intrinsics, np.asarray(
+        load_sequence(BUNDLED_CLIP).intrinsics, np.float32))
+
+
+def test_refinement_keeps_the_oldest_keyframe_fixed():
+    """The gauge: a window refinement leaves the oldest keyframe's pose as it was."""
+    seq = load_sequence(BUNDLED_CLIP)
+    lm = LocalMap(CONFIG, np.asarray(seq.intrinsics), (seq.height, seq.width))
+    for n, i in enumerate((0, 3, 6)):
+        frame = preprocess(*seq.load_frame(i), CONFIG)
+        gt = poses7_to_matrices(np.asarray(
+            groundtruth_pose_at(seq, float(seq.timestamps[i])))[None])[0]
+        if n == 0:
+            oldest = gt.copy()
+        lm.add_keyframe(gt, keyframe_edges(frame, CONFIG, seed=n, intr=seq.intrinsics), frame)
+    np.testing.assert_array_equal(lm.window[0].pose, oldest)
+
+
+def test_tracker_reports_mapping_time_and_off_switch():
+    seq = load_sequence(BUNDLED_CLIP)
+    on = run_sequence(seq, CONFIG.replace(window_size=3), progress=False, max_frames=6)
+    off = run_sequence(seq, CONFIG.replace(mapping=False), progress=False, max_frames=6)
+    kf_on = [r for r in on.results if r.keyframe]
+    assert kf_on and all(r.mapping_ms is not None and r.mapping_ms > 0 for r in kf_on)
+    assert all(r.mapping_ms is None for r in off.results)
+    stats = summarise(on, seq)
+    assert "mapping_ms" in stats and np.all(np.isfinite(on.poses))
