@@ -104,6 +104,8 @@ def main(argv: list[str] | None = None) -> int:
         return _eval(args)
     except (FileNotFoundError, ValueError) as err:
         print(f"edgevo: error: {err}", file=sys.stderr)
+        for note in getattr(err, "__notes__", []):  # where a run stopped, what it kept
+            print(f"edgevo: {note}", file=sys.stderr)
         return 2
 
 
@@ -124,8 +126,9 @@ def _run(args: argparse.Namespace) -> int:
     try:
         run = run_sequence(seq, config, out=out, progress=not args.no_progress,
                            max_frames=args.max_frames)
-    except KeyboardInterrupt:
-        print(f"edgevo: interrupted; the frames done so far are in {out}.part", file=sys.stderr)
+    except KeyboardInterrupt as err:
+        notes = getattr(err, "__notes__", [])
+        print("edgevo: interrupted" + (f"; {notes[0]}" if notes else ""), file=sys.stderr)
         return 130
     stats = summarise(run, seq)
     if args.stats is not None:
@@ -139,7 +142,8 @@ def _summary_text(stats: dict, out: Path) -> str:
     ms = stats["ms_per_frame"]
     lines = [
         f"sequence      {stats['sequence']}",
-        f"frames        {stats['frames']}  (keyframes {stats['keyframes']}, lost {stats['lost']})",
+        f"frames        {stats['frames']}  (keyframes {stats['keyframes']}, weak {stats['weak']}, "
+        f"lost {stats['lost']})",
         f"compile       {stats['compile_s']:.2f} s (first tracked frame)",
         f"ms/frame      median {ms['median']:.1f}  mean {ms['mean']:.1f}  p90 {ms['p90']:.1f}"
         "  (warm, decoding excluded)",

@@ -61,6 +61,8 @@ class Config:
     eta: float = 0.6  # gradient consistency: reject g(p) . g(p') < eta
     step_tol: float = 1e-5  # stop a level once the update's norm is below this
     min_inliers: int = 30  # fewer level-0 inliers than this: tracking lost
+    max_covariance_condition: float = 1e6  # lost beyond (TUM frames: 40-400, see README)
+    recovery_keyframes: int = 3  # earlier keyframes tried after a loss
     # --- keyframes (host) ---
     kf_flow_weight: float = 0.02  # w1, on RMS flow (px)
     kf_flow_t_weight: float = 0.04  # w2, on RMS flow without rotation (px)

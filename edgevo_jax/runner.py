@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,7 +27,7 @@ from .datasets.tum import TumSequence, groundtruth_pose_at
 from .io import TrajectoryWriter, matrices_to_poses7, poses7_to_matrices
 from .metrics import ate, rpe
 from .preprocess import start_preprocess
-from .tracker import LOST, FrameResult, Odometry
+from .tracker import LOST, OK, WEAK, FrameResult, Odometry
 
 
 @dataclass
@@ -162,6 +163,9 @@ def summarise(run: RunResult, seq: TumSequence) -> dict:
         "frames": len(run.results),
         "keyframes": run.num_keyframes,
         "lost": sum(r.state == LOST for r in run.results),
+        "weak": sum(r.state == WEAK for r in run.results),
+        "flags": dict(Counter(f"{r.state}: {r.reason}" for r in run.results
+                              if r.state != OK)),
         "compile_s": run.compile_s,
         "ms_per_frame": _describe(warm),
         "preprocess_ms": _describe([r.preprocess_ms for r in run.results[2:]]),
@@ -178,6 +182,8 @@ def summarise(run: RunResult, seq: TumSequence) -> dict:
     }
     if run.stopped_at is not None:
         stats["stopped_at_frame"] = run.stopped_at
+    if seq.groundtruth is not None and len(run.results) < 3:
+        stats["ground_truth_note"] = f"only {len(run.results)} frames tracked, ATE needs 3"
     if seq.groundtruth is not None and len(run.results) >= 3:
         gt_t, gt_p = seq.groundtruth
         est = matrices_to_poses7(run.poses)

@@ -48,7 +48,8 @@ class LevelSystem(NamedTuple):
 class TrackResult(NamedTuple):
     """Output of one alignment: the pose T_cur_kf (4, 4), its covariance (6, 6) over a left
     twist [v, w], level-0 inliers, mean inlier residual (px), the RMS optical flow of the
-    visible edges with and without rotation (px), and how many edges warp into the image."""
+    visible edges with and without rotation (px), how many edges warp into the image, and
+    the level-0 robust cost (Huber, the gate's cost for each rejected edge)."""
 
     T_c_k: jnp.ndarray
     covariance: jnp.ndarray
@@ -57,6 +58,7 @@ class TrackResult(NamedTuple):
     flow: jnp.ndarray
     flow_t: jnp.ndarray
     visible: jnp.ndarray
+    cost: jnp.ndarray
 
 
 def level_to_0(uv_l: jnp.ndarray, level: int) -> jnp.ndarray:
@@ -185,4 +187,5 @@ def track(
         flow=rms_flow(kf.uv, uv_c, visible),
         flow_t=rms_flow(kf.uv, uv_t, visible),
         visible=jnp.sum(visible),
+        cost=final.cost,
     )

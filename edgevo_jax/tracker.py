@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import jax
 import jax.numpy as jnp
+import jaxlie
 import numpy as np
 
 from .camera import Intrinsics
@@ -25,13 +26,14 @@ from .solve import KeyframeEdges, track
 
 _track_jit = jax.jit(track, static_argnames="config")
 
-OK, LOST = "OK", "LOST"
+OK, WEAK, LOST = "OK", "WEAK", "LOST"
 
 
 @dataclass(frozen=True)
 class FrameResult:
     """What tracking one frame gives: pose T_world_cam (4, 4, float64), tracking state
-    (``OK`` / ``LOST``) and the reason when lost, covariance (6, 6) of a left twist [v, w]
+    (``OK``; ``WEAK``: usable but doubtful; ``LOST``: the pose is the constant-velocity
+    prediction, never NaN) and the reason when not OK, covariance (6, 6) of a left twist [v, w]
     of T_cur_kf, level-0 inliers, whether the frame became a keyframe (and why), the number of
     keyframe edges it was tracked with, the edge selection and local mapping times when it
     became a keyframe (mapping None when off), and host timings in ms (preprocess; solve =
@@ -100,6 +102,7 @@ class Odometry:
         self._in_flight = False
         self.num_keyframes = 0
         self.local_map: LocalMap | None = None  # made with the first keyframe (image size)
+        self._previous: list[_Keyframe] = []  # earlier keyframes, for recovery after a loss
 
     # -- public -------------------------------------------------------------------------
     def track(self, rgb: np.ndarray, depth: np.ndarray, timestamp: float) -> FrameResult:
@@ -149,14 +152,22 @@ class Odometry:
         res = jax.device_get(pending.output)
         t_solve = time.perf_counter()
         kf = self._kf
-        T_c_k = np.asarray(res.T_c_k, np.float64)
+        lost = self._lost_reason(frame, res)
+        # lost, or far fewer inliers than this keyframe's frames had (a wrong basin, as
+        # after a prediction far off): recovery tries other starts and other keyframes
+        collapsed = lost is None and kf.inlier_counts and int(res.inliers) < (
+            self.config.kf_min_inlier_ratio * float(np.mean(kf.inlier_counts)))
+        if (lost is not None and frame.num_edges > 0) or collapsed:
+            found = self._recover(frame, pending.predicted)
+            if found is not None and (lost is not None or (
+                    found[1].cost < res.cost if found[0] is kf
+                    else found[1].inliers > res.inliers)):
+                kf, res = found
+                lost = None
         inliers = int(res.inliers)
-        lost = None
-        if not np.all(np.isfinite(T_c_k)):
-            lost = "non-finite pose"
-        elif inliers < self.config.min_inliers:
-            lost = f"too few inliers ({inliers})"
+        weak = None
         if lost is None:
+            T_c_k = np.asarray(res.T_c_k, np.float64)
             pose = kf.pose @ inverse_np(orthonormalise_np(T_c_k))
             reason = keyframe_reason(
                 flow=float(res.flow), flow_t=float(res.flow_t), inliers=inliers,
@@ -164,16 +175,72 @@ class Odometry:
                 dt=timestamp - kf.timestamp, config=self.config,
             )
             kf.inlier_counts.append(inliers)
+            weak = self._weak_reason(frame, res)
+            if kf is not self._kf:  # recovered against an earlier keyframe: it takes over
+                self._kf = kf
         else:
-            pose, reason = pending.predicted, "lost"
+            pose, reason = pending.predicted, "lost"  # predicted (constant velocity), flagged
         used = kf.num_edges
         made_kf = self._make_keyframe(frame, timestamp, pose) if reason else None
         if made_kf is not None:
             pose = made_kf[0]  # refined in the window
         self._push(pose)
         cov = np.asarray(res.covariance, np.float64) if lost is None else None
-        return self._result(pending, pose, OK if lost is None else LOST, lost, inliers, cov,
+        state = LOST if lost else (WEAK if weak else OK)
+        return self._result(pending, pose, state, lost or weak, inliers, cov,
                             reason if made_kf else None, used, made_kf, t_solve)
+
+    def _lost_reason(self, frame: Frame, res) -> str | None:
+        """Why a solve result cannot be used (None: it can): no edges in the frame,
+        non-finite pose or covariance, too few inliers, ill-conditioned covariance."""
+        if frame.num_edges == 0:
+            return "no edges in the frame"
+        T = np.asarray(res.T_c_k, np.float64)
+        cov = np.asarray(res.covariance, np.float64)
+        if not (np.all(np.isfinite(T)) and np.all(np.isfinite(cov))):
+            return "non-finite pose"
+        if int(res.inliers) < self.config.min_inliers:
+            return f"too few inliers ({int(res.inliers)})"
+        cond = np.linalg.cond(cov)
+        if not cond <= self.config.max_covariance_condition:
+            return f"covariance ill-conditioned (condition {cond:.2g})"
+        return None
+
+    def _weak_reason(self, frame: Frame, res) -> str | None:
+        """Why a usable result is doubtful: inliers whose mean residual is over half the gate
+        (random matches under the gate average half of it), or a frame without depth (it
+        cannot become a keyframe)."""
+        mean = float(res.mean_residual)
+        if mean > 0.5 * self.config.max_residual[0]:
+            return f"mean residual {mean:.2f} px over half the gate"
+        if not np.any(frame.edge_depth > 0):
+            return "no depth (cannot become a keyframe)"
+        return None
+
+    def _recover(self, frame: Frame, predicted: np.ndarray):
+        """After a loss: align again from other starting poses (the keyframe's own pose, the
+        last frame's, constant velocity doubled and halved) against the current keyframe,
+        then against the earlier keyframes kept; the first keyframe where a start succeeds
+        wins, with the start of lowest robust cost. Returns (keyframe, result) or None."""
+        last = self._poses[-1]
+        starts = [last]
+        if len(self._poses) == 2:
+            step = inverse_np(self._poses[0]) @ last  # one frame's motion
+            starts += [last @ step @ step, last @ _half(step)]
+        for kf in [self._kf, *reversed(self._previous)]:
+            guesses = [kf.pose, *starts] if kf is self._kf else [predicted, *starts]
+            best = None
+            for T_w_c in guesses:
+                out = jax.device_get(_track_jit(
+                    kf.edges, frame.dist, frame.nearest_grad,
+                    (inverse_np(T_w_c) @ kf.pose).astype(np.float32), self.intrinsics,
+                    config=self.config))
+                if self._lost_reason(frame, out) is None and (
+                        best is None or float(out.cost) < float(best.cost)):
+                    best = out
+            if best is not None:
+                return kf, best
+        return None
 
     # -- internals ------------------------------------------------------------------------
     def _predict(self) -> np.ndarray:
@@ -208,6 +275,8 @@ class Odometry:
             if self.config.mapping_intrinsics:
                 self.intrinsics = self.local_map.camera
             mapping_ms = (time.perf_counter() - t1) * 1e3
+        if self._kf is not None:
+            self._previous = [*self._previous, self._kf][-(self.config.recovery_keyframes):]
         self._kf = _Keyframe(timestamp, pose, KeyframeEdges(*(jnp.asarray(a) for a in edges)), n)
         self.num_keyframes += 1
         return pose, (t1 - t0) * 1e3, mapping_ms
@@ -225,3 +294,8 @@ class Odometry:
             total_ms=pending.preprocess_ms + (t_end - pending.t_submit) * 1e3,
         )
 
+
+def _half(T: np.ndarray) -> np.ndarray:
+    """The motion halfway along T (4, 4): half the rotation angle, half the translation."""
+    xi = np.asarray(jaxlie.SE3.from_matrix(T).log(), np.float64)
+    return np.asarray(jaxlie.SE3.exp(0.5 * xi).as_matrix(), np.float64)
