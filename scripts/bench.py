@@ -8,8 +8,9 @@ Usage::
 
 Methods:
 
-- ``edgevo`` (the default ``Config``) and any ``--edgevo`` variant, e.g.
-  ``--edgevo "edgevo_all=selection=all"``: ``edgevo_jax.runner.run_sequence`` (keyframe-based,
+- ``edgevo`` (the default ``Config``), ``edgevo_all`` (``selection=all``), ``edgevo_map``
+  (``mapping=true``) and any ``--edgevo`` variant, e.g. ``--edgevo "e256=num_edges=256"``:
+  ``edgevo_jax.runner.run_sequence`` (keyframe-based,
   pipelined: the solve of frame i overlaps the preprocessing of frame i+1).
 - ``cv2_rgb``, ``cv2_depth``, ``cv2_rgbd``: OpenCV 5 ``cv2.Odometry`` with
   ``OdometryType_RGB`` / ``_DEPTH`` / ``_RGB_DEPTH`` (``OdometryAlgoType_COMMON``, default
@@ -84,6 +85,8 @@ from edgevo_jax.provenance import machine_info
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_EDGEVO = "edgevo"
+# the edgevo variants every run includes: selection off (all edges) and local mapping on
+BUILTIN_VARIANTS = ("edgevo_all=selection=all", "edgevo_map=mapping=true")
 PEERS = ("cv2_rgb", "cv2_depth", "cv2_rgbd", "o3d_color", "o3d_hybrid")
 WARMUP_FRAMES = 2  # frame 0 sets up, frame 1 is the first pair (edgevo: compiles)
 O3D_DEPTH_TRUNC_M = 4.0  # = OdometryOption().depth_max
@@ -573,7 +576,8 @@ def main(argv: list[str] | None = None,
     args = _parser().parse_args(argv)
     say = progress or (lambda line: print(line, file=sys.stderr, flush=True))
     try:
-        variants = {DEFAULT_EDGEVO: []} | dict(parse_variant(s) for s in args.edgevo)
+        variant_specs = [*BUILTIN_VARIANTS, *args.edgevo]  # a user's spec replaces a builtin
+        variants = {DEFAULT_EDGEVO: []} | dict(parse_variant(s) for s in variant_specs)
         if args.max_frames is not None and args.max_frames < 1:
             raise ValueError("--max-frames must be positive")
         if args.one is not None:
@@ -594,7 +598,7 @@ def main(argv: list[str] | None = None,
         return 2
     methods = ([m.strip() for m in args.methods.split(",") if m.strip()]
                if args.methods else [*variants, *PEERS])
-    specs = dict(zip([parse_variant(s)[0] for s in args.edgevo], args.edgevo, strict=True))
+    specs = dict(zip([parse_variant(s)[0] for s in variant_specs], variant_specs, strict=True))
 
     rows: list[dict[str, Any]] = []
     total, k = len(seqs) * len(methods), 0
