@@ -483,3 +483,25 @@ def test_marginalizing_edges_equals_the_dense_schur_complement(refined):
         prior = out._replace(poses=full.poses, intrinsics=full.intrinsics)
         twice = marginalize_edges(full, jnp.asarray(edges), WINDOW_CONFIG, prior)
         np.testing.assert_allclose(twice.H, 2 * np.asarray(out.H), atol=1e-8 * scale)
+
+
+def test_depth_prior_adds_its_curvature_gradient_and_cost(refined):
+    """With measured inverse depths rho_prior and sigma, the depth block gains 1 / sigma^2,
+    the depth gradient (rho - rho_prior) / sigma^2 and the cost 0.5 ((rho - rho_prior) /
+    sigma)^2, on valid edges only; the camera blocks do not change."""
+    _, full, _ = refined
+    with jax.enable_x64(True):
+        sigma = 0.01
+        cfg = WINDOW_CONFIG._replace(depth_prior_sigma=sigma)
+        rho0 = full.rho * 1.03
+        plain = normal_equations(full, cfg)
+        withp = normal_equations(full._replace(rho_prior=rho0), cfg)
+        valid = np.asarray(full.valid).reshape(-1)
+        d = np.asarray(full.rho - rho0).reshape(-1)
+        np.testing.assert_allclose(np.asarray(withp.h_pp - plain.h_pp),
+                                   np.where(valid, 1 / sigma**2, 0.0), rtol=1e-12)
+        np.testing.assert_allclose(np.asarray(withp.b_p - plain.b_p),
+                                   np.where(valid, d / sigma**2, 0.0), rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(float(withp.cost - plain.cost),
+                                   0.5 * np.sum(np.where(valid, d / sigma, 0.0) ** 2), rtol=1e-9)
+        np.testing.assert_array_equal(np.asarray(withp.H_cc), np.asarray(plain.H_cc))
