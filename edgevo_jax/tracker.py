@@ -103,10 +103,14 @@ class Odometry:
         self.num_keyframes = 0
         self.local_map: LocalMap | None = None  # made with the first keyframe (image size)
         self._previous: list[_Keyframe] = []  # earlier keyframes, for recovery after a loss
+        self._shape: tuple[int, int] | None = None  # (H, W) of the frames seen by ``track``
 
     # -- public -------------------------------------------------------------------------
     def track(self, rgb: np.ndarray, depth: np.ndarray, timestamp: float) -> FrameResult:
-        """Track one frame: rgb (H, W, 3) uint8, depth (H, W) in metres (0 = missing)."""
+        """Track one frame: rgb (H, W, 3) (or gray (H, W)) uint8, depth (H, W) float in
+        metres (0 or NaN = missing), timestamp in seconds, increasing. ValueError naming the
+        problem for arrays of the wrong kind or size (before any JAX code runs)."""
+        self._check_frame(rgb, depth, timestamp)
         t0 = time.perf_counter()
         frame = preprocess(rgb, depth, self.config)
         pre_ms = (time.perf_counter() - t0) * 1e3
@@ -243,6 +247,27 @@ class Odometry:
         return None
 
     # -- internals ------------------------------------------------------------------------
+    def _check_frame(self, rgb, depth, timestamp) -> None:
+        """Clear errors for frames the pipeline cannot take (see ``track``)."""
+        rgb, depth = np.asarray(rgb), np.asarray(depth)
+        if rgb.dtype != np.uint8 or not (rgb.ndim == 2 or (rgb.ndim == 3 and rgb.shape[2] == 3)):
+            raise ValueError(f"rgb must be uint8 (H, W, 3) or (H, W), got {rgb.dtype} "
+                             f"{rgb.shape}")
+        if depth.ndim != 2 or depth.dtype.kind != "f":
+            hint = " (raw TUM depth PNGs: divide by 5000 for metres)" \
+                if depth.dtype.kind in "ui" else ""
+            raise ValueError(f"depth must be float metres (H, W), got {depth.dtype} "
+                             f"{depth.shape}{hint}")
+        if depth.shape != rgb.shape[:2]:
+            raise ValueError(f"rgb is {rgb.shape[1]}x{rgb.shape[0]} but depth is "
+                             f"{depth.shape[1]}x{depth.shape[0]} (width x height)")
+        if self._shape is not None and depth.shape != self._shape:
+            raise ValueError(f"frame is {depth.shape[1]}x{depth.shape[0]}, earlier frames were "
+                             f"{self._shape[1]}x{self._shape[0]} (width x height)")
+        if not np.isfinite(float(timestamp)):
+            raise ValueError(f"timestamp must be finite, got {timestamp}")
+        self._shape = depth.shape
+
     def _predict(self) -> np.ndarray:
         """Constant velocity: T_w_pred = T_w_last (T_w_prev^-1 T_w_last)."""
         if len(self._poses) < 2:

@@ -112,3 +112,23 @@ def test_timestamps_that_go_back_are_rejected(clip):
     odo.track(*frames[0], 10.0)
     with pytest.raises(ValueError, match="does not increase"):
         odo.track(*frames[1], 9.5)
+
+
+@pytest.mark.parametrize(("rgb", "depth", "message"), [
+    (np.zeros((48, 64, 3), np.float32), np.ones((48, 64), np.float32), "rgb must be uint8"),
+    (np.zeros((48, 64, 4), np.uint8), np.ones((48, 64), np.float32), "rgb must be uint8"),
+    (np.zeros((48, 64, 3), np.uint8), np.ones((24, 32), np.float32), "but depth is 32x24"),
+    (np.zeros((48, 64, 3), np.uint8), np.ones((48, 64), np.uint16), "divide by 5000"),
+    (np.zeros((48, 64, 3), np.uint8), np.ones((48, 64, 1), np.float32), "depth must be float"),
+])
+def test_streaming_api_names_bad_arrays(rgb, depth, message):
+    odo = Odometry(Config(), SMALL)
+    with pytest.raises(ValueError, match=message):
+        odo.track(rgb, depth, 0.0)
+
+
+def test_streaming_api_rejects_a_change_of_image_size():
+    odo = Odometry(Config(num_edges=64, min_inliers=5), SMALL)
+    odo.track(np.zeros((48, 64, 3), np.uint8), np.ones((48, 64), np.float32), 0.0)
+    with pytest.raises(ValueError, match="earlier frames were 64x48"):
+        odo.track(np.zeros((24, 32, 3), np.uint8), np.ones((24, 32), np.float32), 0.1)
