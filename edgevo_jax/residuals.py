@@ -76,5 +76,13 @@ def gradient_consistent(
     """g(p) . g(p') >= eta, with g(p) (2, K) the keyframe edges' normalised gradients and p'
     the nearest edge to the warped level-0 pixels uv0 (2, K); nearest_grad (H, W, 2) holds
     g(p') * 127 as int8 (see preprocess.nearest_edge_map)."""
+    return consistency_dots(grad_k, nearest_grad, uv0) >= eta
+
+
+def consistency_dots(
+    grad_k: jnp.ndarray, nearest_grad: jnp.ndarray, uv0: jnp.ndarray
+) -> jnp.ndarray:
+    """g(p) . g(p') (K,), the quantity ``gradient_consistent`` compares with eta (same
+    arguments). Piecewise constant in uv0 (a nearest-pixel lookup): zero derivative."""
     g_near = nearest(nearest_grad, uv0).astype(grad_k.dtype) * (1.0 / 127.0)
-    return jnp.sum(grad_k * g_near, axis=0) >= eta
+    return jnp.sum(grad_k * g_near, axis=0)

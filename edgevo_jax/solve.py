@@ -8,6 +8,7 @@ xi = -(J^T W J + lam diag)^-1 J^T W r applied as T <- exp(xi) T when it lowers t
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
@@ -87,11 +88,44 @@ def normal_equations(
     consistent = gradient_consistent(kf.grad, nearest_grad, level_to_0(uv_c, level), config.eta)
     delta, gate = config.huber_delta[level], config.max_residual[level]
     mask = kf.valid & ok & (r <= gate) & consistent
-    w = jnp.where(mask, huber_weights(r, delta), 0.0)
+    return robust_system(r, J, mask, kf.valid, delta, gate)
+
+
+def robust_system(
+    r: jnp.ndarray,
+    J: jnp.ndarray,
+    mask: jnp.ndarray,
+    valid: jnp.ndarray,
+    delta: float | jnp.ndarray,
+    gate: float | jnp.ndarray,
+    weight: jnp.ndarray | None = None,
+    reject: jnp.ndarray | None = None,
+    weight_slope: jnp.ndarray | None = None,
+) -> LevelSystem:
+    """Huber-weighted normal equations of residuals r (K,) with Jacobian J (6, K) over the
+    inliers ``mask``; every other ``valid`` edge costs the gate's Huber cost.
+
+    Optional (the differentiable path of ``learn.py``): ``weight`` (K,) scales each inlier's
+    Huber weight and cost; ``reject`` (K,) in [0, 1] adds that fraction of the gate's cost to
+    an inlier (a soft rejection); ``weight_slope`` (K,) is d weight / dr when the weight
+    depends on the residual, so that g stays the gradient of the cost (the term
+    weight_slope * Huber cost joins J^T W r; H keeps the Gauss-Newton weights). Without them
+    this is the plain tracker's system.
+    """
+    w = huber_weights(r, delta)
+    inlier_cost = huber_cost(r, delta)
+    if weight is not None:
+        w, inlier_cost = weight * w, weight * inlier_cost
+    if reject is not None:
+        inlier_cost = inlier_cost + reject * huber_cost(gate, delta)
+    w = jnp.where(mask, w, 0.0)
     Jw = J * w
-    outside = jnp.where(kf.valid, huber_cost(gate, delta), 0.0)
-    cost = jnp.sum(jnp.where(mask, huber_cost(r, delta), outside))
-    return LevelSystem(H=Jw @ J.T, g=Jw @ r, cost=cost, inliers=jnp.sum(mask), r=r, mask=mask)
+    g = Jw @ r
+    if weight_slope is not None:
+        g = g + J @ jnp.where(mask, weight_slope * huber_cost(r, delta), 0.0)
+    outside = jnp.where(valid, huber_cost(gate, delta), 0.0)
+    cost = jnp.sum(jnp.where(mask, inlier_cost, outside))
+    return LevelSystem(H=Jw @ J.T, g=g, cost=cost, inliers=jnp.sum(mask), r=r, mask=mask)
 
 
 def damped_step(system: LevelSystem, lam: jnp.ndarray) -> jnp.ndarray:
@@ -102,6 +136,27 @@ def damped_step(system: LevelSystem, lam: jnp.ndarray) -> jnp.ndarray:
     xi = -jnp.linalg.solve(A, system.g)
     ok = jnp.all(jnp.isfinite(xi)) & (system.inliers >= 6)
     return jnp.where(ok, xi, jnp.zeros_like(xi))
+
+
+def lm_iteration(
+    system_at: Callable[[jaxlie.SE3], LevelSystem],
+    T: jaxlie.SE3,
+    system: LevelSystem,
+    lam: jnp.ndarray,
+) -> tuple[jaxlie.SE3, LevelSystem, jnp.ndarray, jnp.ndarray]:
+    """One Levenberg-Marquardt try from pose T with its normal equations ``system``: the
+    damped step is kept when ``system_at`` says it lowers the robust cost; lam shrinks 10x
+    after a kept step and grows 10x after a rejected one. Returns the pose, its system, the
+    new lam and the step's norm (a rejected step this short only shrinks further)."""
+    xi = damped_step(system, lam)
+    T_new = retract_left(T, xi)
+    sys_new = system_at(T_new)
+    better = sys_new.cost < system.cost
+    T, system = jax.tree.map(
+        lambda a, b: jnp.where(better, a, b), (T_new, sys_new), (T, system)
+    )
+    lam = jnp.clip(jnp.where(better, lam * 0.1, lam * 10.0), 1e-6, 1e4)
+    return T, system, lam, jnp.linalg.norm(xi)
 
 
 def align_level(
@@ -132,13 +187,7 @@ def align_level(
 
     def body(state):
         i, T, sys, lam, _ = state
-        xi = damped_step(sys, lam)
-        T_new = retract_left(T, xi)
-        sys_new = system_at(T_new)
-        better = sys_new.cost < sys.cost
-        T, sys = jax.tree.map(lambda a, b: jnp.where(better, a, b), (T_new, sys_new), (T, sys))
-        step = jnp.linalg.norm(xi)  # a rejected step this short only shrinks further
-        lam = jnp.clip(jnp.where(better, lam * 0.1, lam * 10.0), 1e-6, 1e4)
+        T, sys, lam, step = lm_iteration(system_at, T, sys, lam)
         return i + 1, T, sys, lam, step
 
     dtype = pts_k.dtype
@@ -170,10 +219,24 @@ def track(
     T = jaxlie.SE3.from_matrix(T_init)
     for level in reversed(range(config.num_levels)):
         T, final = align_level(T, pts_k, kf, dist[level], nearest_grad, intr, level, config)
+    return track_result(T, final, pts_k, kf, dist[0].shape, intr)
+
+
+def track_result(
+    T: jaxlie.SE3,
+    final: LevelSystem,
+    pts_k: jnp.ndarray,
+    kf: KeyframeEdges,
+    shape: tuple[int, int],
+    intr: Intrinsics,
+) -> TrackResult:
+    """The TrackResult of an alignment that ended at pose T with level-0 normal equations
+    ``final``: covariance, inlier statistics and the optical flow of the visible edges;
+    shape (H, W) of level 0."""
     H = final.H + 1e-9 * (jnp.trace(final.H) + 1.0) * jnp.eye(6, dtype=final.H.dtype)
     # optical flow of the edges that stay in view, with and without rotation (keyframe rule)
     uv_c, pts_c = warp(intr, T, pts_k)
-    h, w = dist[0].shape
+    h, w = shape
     visible = (
         kf.valid & (pts_c[2] > 1e-6) & (uv_c[0] >= 0) & (uv_c[0] <= w - 1)
         & (uv_c[1] >= 0) & (uv_c[1] <= h - 1)
