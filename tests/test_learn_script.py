@@ -1,0 +1,68 @@
+"""scripts/learn_weights.py end to end on the bundled fr1/xyz clip: a few pairs, two adam
+steps; the JSON holds finite numbers and the loss-curve PNG is written."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from edgevo_jax.cli import BUNDLED_CLIP
+
+pytest.importorskip("optax", reason="optax is needed to fit Params (pip install 'optax>=0.2')")
+pytest.importorskip("matplotlib", reason="matplotlib draws the loss curve")
+
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "learn_weights.py"
+
+
+def _load_script():
+    spec = importlib.util.spec_from_file_location("learn_weights", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _numbers(obj):
+    if isinstance(obj, dict):
+        for v in obj.values():
+            yield from _numbers(v)
+    elif isinstance(obj, list):
+        for v in obj:
+            yield from _numbers(v)
+    elif obj is None or (isinstance(obj, (int, float)) and not isinstance(obj, bool)):
+        yield obj  # None: a NaN or inf that json_safe wrote as null
+
+
+def test_learn_weights_runs_on_the_bundled_clip(tmp_path, capsys):
+    out_json, out_png = tmp_path / "log.json", tmp_path / "loss.png"
+    rc = _load_script().main([
+        str(BUNDLED_CLIP), "--train", "0:5", "--test", "5:10", "--gaps", "1,2",
+        "--num-edges", "64", "--steps", "2", "--batch", "4", "--timing-reps", "1",
+        "--out-json", str(out_json), "--out-png", str(out_png),
+    ])
+    assert rc == 0
+    assert out_png.is_file() and out_png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    report = json.loads(out_json.read_text())
+    assert report["ate"].startswith("not measured")
+    assert report["pairs"]["train"] > 0 and report["pairs"]["test"] > 0
+    assert len(report["loss_curve"]["minibatch"]) == 2
+    assert len(report["loss_curve"]["all_training_pairs"]) == 3
+    for which in ("default", "fitted"):
+        for split in ("train", "test"):
+            rpe = report["rpe"][which][split]
+            assert rpe["t_mean_mm"] >= 0 and rpe["r_mean_deg"] >= 0
+    numbers = list(_numbers({k: report[k] for k in ("rpe", "loss_curve", "fitted_params",
+                                                    "timing")}))
+    assert numbers and all(x is not None and math.isfinite(x) for x in numbers)
+    assert report["timing"]["value_and_grad_warm_s"] > 0
+    assert "value_and_grad over 4 pairs" in capsys.readouterr().out
+
+
+def test_learn_weights_missing_sequence(tmp_path, capsys):
+    rc = _load_script().main([str(tmp_path / "nowhere"), "--out-json",
+                              str(tmp_path / "x.json"), "--out-png", str(tmp_path / "x.png")])
+    assert rc == 2 and "sequence folder not found" in capsys.readouterr().err
+    assert not (tmp_path / "x.json").exists()
