@@ -43,3 +43,10 @@ def orthonormalise_np(T: np.ndarray) -> np.ndarray:
     out = T.copy()
     out[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
     return out
+
+
+def scale_motion_np(T: np.ndarray, s: float) -> np.ndarray:
+    """exp(s log T) for a 4x4 rigid motion T: s = 0.5 is half the rotation angle and half
+    the screw motion (numpy float64 out)."""
+    xi = np.asarray(jaxlie.SE3.from_matrix(T).log(), np.float64)
+    return np.asarray(jaxlie.SE3.exp(s * xi).as_matrix(), np.float64)

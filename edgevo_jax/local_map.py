@@ -27,7 +27,6 @@ activation, the refinement and the two marginalisations.
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass, field
 
 import jax
@@ -163,8 +162,8 @@ class LocalMap:
     def add_keyframe(self, pose: np.ndarray, edges: KeyframeEdges, frame: Frame
                      ) -> tuple[np.ndarray, dict]:
         """Take a new keyframe (pose T_w_k (4, 4); its tracked edges, numpy; its frame) into
-        the window; returns its pose after refinement and the step's stats (ms, inliers)."""
-        t0 = time.perf_counter()
+        the window; returns its pose after refinement and the step's stats (whether it
+        refined; then inliers, tries and costs)."""
         cfg = self.config
         stats: dict = {"refined": False}
         if len(self.window) == cfg.window_size:
@@ -179,7 +178,6 @@ class LocalMap:
         self.window.append(new)
         if len(self.window) == cfg.window_size:
             stats.update(self._refine())
-        stats["ms"] = (time.perf_counter() - t0) * 1e3
         return self.window[-1].pose, stats
 
     # -- steps ----------------------------------------------------------------------------

@@ -12,12 +12,11 @@ from dataclasses import dataclass, field
 
 import jax
 import jax.numpy as jnp
-import jaxlie
 import numpy as np
 
 from .camera import Intrinsics
 from .config import Config
-from .geometry import inverse_np, orthonormalise_np
+from .geometry import inverse_np, orthonormalise_np, scale_motion_np
 from .keyframes import keyframe_reason
 from .local_map import LocalMap
 from .preprocess import Frame, preprocess
@@ -230,7 +229,7 @@ class Odometry:
         starts = [last]
         if len(self._poses) == 2:
             step = inverse_np(self._poses[0]) @ last  # one frame's motion
-            starts += [last @ step @ step, last @ _half(step)]
+            starts += [last @ step @ step, last @ scale_motion_np(step, 0.5)]
         for kf in [self._kf, *reversed(self._previous)]:
             guesses = [kf.pose, *starts] if kf is self._kf else [predicted, *starts]
             best = None
@@ -319,8 +318,3 @@ class Odometry:
             total_ms=pending.preprocess_ms + (t_end - pending.t_submit) * 1e3,
         )
 
-
-def _half(T: np.ndarray) -> np.ndarray:
-    """The motion halfway along T (4, 4): half the rotation angle, half the translation."""
-    xi = np.asarray(jaxlie.SE3.from_matrix(T).log(), np.float64)
-    return np.asarray(jaxlie.SE3.exp(0.5 * xi).as_matrix(), np.float64)

@@ -131,3 +131,13 @@ def test_intrinsics_validate_rejects_bad_values():
         Intrinsics(float("nan"), 1.0, 0.0, 0.0).validate()
     with pytest.raises(ValueError, match="positive"):
         Intrinsics(-1.0, 1.0, 0.0, 0.0).validate()
+
+
+def test_half_a_motion_twice_is_the_motion():
+    from edgevo_jax.geometry import scale_motion_np
+
+    T = np.asarray(jaxlie.SE3.exp(jnp.array([0.1, -0.05, 0.2, 0.3, -0.2, 0.1])).as_matrix(),
+                   np.float64)
+    half = scale_motion_np(T, 0.5)
+    np.testing.assert_allclose(half @ half, T, atol=1e-6)
+    np.testing.assert_allclose(scale_motion_np(T, 0.0), np.eye(4), atol=1e-7)
