@@ -14,6 +14,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import jaxlie
+import numpy as np
 
 from .camera import Intrinsics, unproject
 from .config import Config
@@ -31,6 +32,37 @@ class KeyframeEdges(NamedTuple):
     rho: jnp.ndarray
     grad: jnp.ndarray
     valid: jnp.ndarray
+
+
+class SolveKnobs(NamedTuple):
+    """The numeric settings of the solve as arrays (a pytree), so that one compiled program
+    serves many configurations (``batch.py`` vmaps over them): per level huber_delta (L,) and
+    max_residual (L,) in that level's pixels, iterations (L,) int32; eta () and step_tol ()."""
+
+    huber_delta: jnp.ndarray
+    max_residual: jnp.ndarray
+    eta: jnp.ndarray
+    iterations: jnp.ndarray
+    step_tol: jnp.ndarray
+
+
+def solve_knobs(config: Config) -> SolveKnobs:
+    """The ``SolveKnobs`` of a Config (numpy arrays, float32 and int32)."""
+    return SolveKnobs(
+        huber_delta=np.asarray(config.huber_delta, np.float32),
+        max_residual=np.asarray(config.max_residual, np.float32),
+        eta=np.asarray(config.eta, np.float32),
+        iterations=np.asarray(config.iterations, np.int32),
+        step_tol=np.asarray(config.step_tol, np.float32),
+    )
+
+
+def solve_structure(config: Config) -> Config:
+    """The static part of the solve once ``SolveKnobs`` carry its numbers: the number of
+    pyramid levels, as a default Config with that many levels, so that configurations that
+    differ in numbers only share one compiled program."""
+    n = config.num_levels
+    return Config(iterations=(10,) * n, huber_delta=(1.0,) * n, max_residual=(5.0,) * n)
 
 
 class LevelSystem(NamedTuple):
@@ -75,7 +107,7 @@ def normal_equations(
     nearest_grad: jnp.ndarray,
     intr: Intrinsics,
     level: int,
-    config: Config,
+    knobs: SolveKnobs,
 ) -> LevelSystem:
     """Gated, Huber-weighted normal equations of the distance residuals at pose T.
 
@@ -85,8 +117,8 @@ def normal_equations(
     so that rejecting a match never lowers the cost.
     """
     r, J, ok, uv_c = residual_and_jacobian(field, intr.at_level(level), T, pts_k)
-    consistent = gradient_consistent(kf.grad, nearest_grad, level_to_0(uv_c, level), config.eta)
-    delta, gate = config.huber_delta[level], config.max_residual[level]
+    consistent = gradient_consistent(kf.grad, nearest_grad, level_to_0(uv_c, level), knobs.eta)
+    delta, gate = knobs.huber_delta[level], knobs.max_residual[level]
     mask = kf.valid & ok & (r <= gate) & consistent
     return robust_system(r, J, mask, kf.valid, delta, gate)
 
@@ -167,23 +199,23 @@ def align_level(
     nearest_grad: jnp.ndarray,
     intr: Intrinsics,
     level: int,
-    config: Config,
+    knobs: SolveKnobs,
 ) -> tuple[jaxlie.SE3, LevelSystem]:
     """Levenberg-Marquardt on the Huber-weighted (Gauss-Newton) normal equations at one level;
     returns the pose and the normal equations at it.
 
     A step is kept only when it lowers the robust cost (the coarse, non-smooth distance fields
     make plain Gauss-Newton oscillate); lam shrinks 10x after a kept step and grows 10x after
-    a rejected one. lax.while_loop: fixed shapes, stop after ``iterations[level]`` tries or
-    once a step, kept or not, is shorter than ``step_tol``.
+    a rejected one. lax.while_loop: fixed shapes, stop after ``knobs.iterations[level]`` tries
+    or once a step, kept or not, is shorter than ``knobs.step_tol``.
     """
 
     def system_at(T):
-        return normal_equations(T, pts_k, kf, field, nearest_grad, intr, level, config)
+        return normal_equations(T, pts_k, kf, field, nearest_grad, intr, level, knobs)
 
     def cond(state):
         i, _, _, _, step = state
-        return (i < config.iterations[level]) & (step >= config.step_tol)
+        return (i < knobs.iterations[level]) & (step >= knobs.step_tol)
 
     def body(state):
         i, T, sys, lam, _ = state
@@ -209,16 +241,19 @@ def track(
     T_init: jnp.ndarray,
     intr: Intrinsics,
     config: Config,
+    knobs: SolveKnobs | None = None,
 ) -> TrackResult:
     """Align keyframe edges to the frame's distance-field pyramid, coarsest level first.
 
     dist: one field per level (H / 2**l, W / 2**l); nearest_grad (H, W, 2) int8;
-    T_init: (4, 4) initial T_cur_kf. Jit with ``config`` static.
+    T_init: (4, 4) initial T_cur_kf. Jit with ``config`` static; its numbers are read from
+    ``knobs`` (default: ``solve_knobs(config)``), which may be traced.
     """
+    knobs = solve_knobs(config) if knobs is None else knobs
     pts_k = unproject(intr, kf.uv, kf.rho)
     T = jaxlie.SE3.from_matrix(T_init)
     for level in reversed(range(config.num_levels)):
-        T, final = align_level(T, pts_k, kf, dist[level], nearest_grad, intr, level, config)
+        T, final = align_level(T, pts_k, kf, dist[level], nearest_grad, intr, level, knobs)
     return track_result(T, final, pts_k, kf, dist[0].shape, intr)
 
 

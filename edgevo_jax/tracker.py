@@ -15,13 +15,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from .camera import Intrinsics
+from .chunk import track_chunk_jit, track_next_jit
 from .config import Config
 from .geometry import inverse_np, orthonormalise_np, scale_motion_np
 from .keyframes import keyframe_reason
 from .local_map import LocalMap
 from .preprocess import Frame, preprocess
 from .selection import keyframe_edges
-from .solve import KeyframeEdges, track
+from .solve import KeyframeEdges, TrackResult, solve_knobs, solve_structure, track
 
 _track_jit = jax.jit(track, static_argnames="config")
 
@@ -103,6 +104,12 @@ class Odometry:
         self.local_map: LocalMap | None = None  # made with the first keyframe (image size)
         self._previous: list[_Keyframe] = []  # earlier keyframes, for recovery after a loss
         self._shape: tuple[int, int] | None = None  # (H, W) of the frames seen by ``track``
+        # the solve's numbers, passed as (traced) arrays, and its static part: configurations
+        # that differ in numbers only share one compiled program
+        self.knobs, self._static = solve_knobs(config), solve_structure(config)
+        # the last two poses relative to the keyframe, A = T_(i-1)_kf and B = T_(i-2)_kf
+        # (float32): the device predicts the next one from them (chunk.predict)
+        self._rel: tuple[np.ndarray, np.ndarray] | None = None
 
     # -- public -------------------------------------------------------------------------
     def track(self, rgb: np.ndarray, depth: np.ndarray, timestamp: float) -> FrameResult:
@@ -133,28 +140,100 @@ class Odometry:
         self._in_flight = True
         if self._kf is None:
             return _Pending(frame, timestamp, self._initial, None, preprocess_ms, t_submit)
-        predicted = self._predict()
-        T_init = inverse_np(predicted) @ self._kf.pose  # T_cur_kf
-        output = _track_jit(
-            self._kf.edges, frame.dist, frame.nearest_grad, T_init.astype(np.float32),
-            self.intrinsics, config=self.config,
-        )
-        return _Pending(frame, timestamp, predicted, output, preprocess_ms, t_submit)
+        A, B = self._rel
+        output = track_next_jit(self._kf.edges, frame.dist, frame.nearest_grad, A, B,
+                                self.intrinsics, self.knobs, config=self._static)
+        return _Pending(frame, timestamp, self._predict(), output, preprocess_ms, t_submit)
 
     def complete(self, pending: _Pending) -> FrameResult:
         """Wait for a submitted frame, decide its state and keyframe, and return its result."""
         self._in_flight = False
-        frame, timestamp = pending.frame, pending.timestamp
         if pending.output is None:  # first frame (or no usable keyframe yet)
-            made_kf = self._make_keyframe(frame, timestamp, pending.predicted)
-            pose = pending.predicted if made_kf is None else made_kf[0]
-            self._push(pose)
-            state, reason = (OK, None) if made_kf else (LOST, "no edges with depth")
-            return self._result(pending, pose, state, reason, 0, None,
-                                "first" if made_kf else None, 0, made_kf, time.perf_counter())
+            return self._first(pending)
         res = jax.device_get(pending.output)
-        t_solve = time.perf_counter()
-        kf = self._kf
+        return self._conclude(pending, res, time.perf_counter())[0]
+
+    def track_chunk(self, frames: list[Frame], timestamps: list[float], *, size: int
+                    ) -> list[FrameResult]:
+        """Track pre-processed frames with the scan tracker (``chunk.track_chunk``): chunks
+        of ``size`` frames (the last one padded by repetition) are tracked on the device
+        against the current keyframe in one call each; the host then concludes them in order
+        and, at the first frame that changes the state (a new keyframe, a loss, a
+        recovery), drops the rest of the chunk and tracks it again from there. Gives the
+        trajectory of ``track_frame`` called frame by frame."""
+        if len(frames) != len(timestamps):
+            raise ValueError(f"{len(frames)} frames but {len(timestamps)} timestamps")
+        results: list[FrameResult] = []
+        i = 0
+        while i < len(frames):
+            if self._kf is None:
+                results.append(self.track_frame(frames[i], timestamps[i]))
+                i += 1
+                continue
+            todo = frames[i:i + size]
+            t_submit = time.perf_counter()
+            out = jax.device_get(self.dispatch_chunk(todo, size))
+            for j in range(len(todo)):
+                res = jax.tree.map(lambda a, j=j: a[j], out)
+                result, plain = self.accept(todo[j], timestamps[i + j], res, t_submit=t_submit)
+                results.append(result)
+                if not plain:
+                    break
+            i += j + 1
+        return results
+
+    def chunk_inputs(self) -> tuple[KeyframeEdges, np.ndarray, np.ndarray, Intrinsics, object]:
+        """What the scan needs besides the frames: keyframe edges, A, B (see ``_rel``),
+        intrinsics and the solve knobs (``batch.py`` stacks these over runs)."""
+        if self._kf is None:
+            raise RuntimeError("no keyframe yet: track the first frame with track_frame")
+        return (self._kf.edges, *self._rel, self.intrinsics, self.knobs)
+
+    def dispatch_chunk(self, frames: list[Frame], size: int) -> TrackResult:
+        """Dispatch the scan over ``frames`` (at most ``size``, padded to it by repeating
+        the last) against the current keyframe; returns device arrays (C leading)."""
+        if not 0 < len(frames) <= size:
+            raise ValueError(f"a chunk takes 1 to {size} frames, got {len(frames)}")
+        frames = list(frames) + [frames[-1]] * (size - len(frames))
+        dist = tuple(np.stack([f.dist[lv] for f in frames]) for lv in range(len(frames[0].dist)))
+        ng = np.stack([f.nearest_grad for f in frames])
+        kf, A, B, intr, knobs = self.chunk_inputs()
+        return track_chunk_jit(kf, dist, ng, A, B, intr, knobs, config=self._static)
+
+    def accept(self, frame: Frame, timestamp: float, res: TrackResult, *,
+               preprocess_ms: float = 0.0, t_submit: float | None = None
+               ) -> tuple[FrameResult, bool]:
+        """Conclude a frame whose solve ``res`` (host arrays) was computed elsewhere (the
+        scan, a batch) from this tracker's current ``chunk_inputs``. Returns its result and
+        whether the state went on plainly (False: a keyframe, a loss or a recovery changed
+        it, and later results of the same chunk are stale)."""
+        timestamp = float(timestamp)
+        if self._last_t is not None and timestamp <= self._last_t:
+            raise ValueError(
+                f"timestamp {timestamp:.6f} does not increase (last was {self._last_t:.6f})"
+            )
+        self._last_t = timestamp
+        t_submit = time.perf_counter() if t_submit is None else t_submit
+        pending = _Pending(frame, timestamp, self._predict(), None, preprocess_ms, t_submit)
+        return self._conclude(pending, res, time.perf_counter())
+
+    def _first(self, pending: _Pending) -> FrameResult:
+        """The first frame (or one while there is no usable keyframe): it becomes the
+        keyframe when it has enough edges with depth."""
+        made_kf = self._make_keyframe(pending.frame, pending.timestamp, pending.predicted)
+        pose = pending.predicted if made_kf is None else made_kf[0]
+        self._push(pose)
+        state, reason = (OK, None) if made_kf else (LOST, "no edges with depth")
+        if self._kf is not None:
+            self._rel = self._relative_from_world()
+        return self._result(pending, pose, state, reason, 0, None,
+                            "first" if made_kf else None, 0, made_kf, time.perf_counter())
+
+    def _conclude(self, pending: _Pending, res, t_solve: float) -> tuple[FrameResult, bool]:
+        """State, recovery, keyframe decision and pose of a solved frame (see ``accept``)."""
+        frame, timestamp = pending.frame, pending.timestamp
+        kf = start_kf = self._kf
+        solved = res
         lost = self._lost_reason(frame, res)
         # lost, or far fewer inliers than this keyframe's frames had (a wrong basin, as
         # after a prediction far off): recovery tries other starts and other keyframes
@@ -188,10 +267,15 @@ class Odometry:
         if made_kf is not None:
             pose = made_kf[0]  # refined in the window
         self._push(pose)
+        plain = lost is None and kf is start_kf and made_kf is None and res is solved
+        # the device predicts the next frame from A, B: the solve's own float32 pose when
+        # nothing changed (as the scan carries it), else from the host's world poses
+        self._rel = ((np.asarray(res.T_c_k, np.float32), self._rel[0]) if plain
+                     else self._relative_from_world())
         cov = np.asarray(res.covariance, np.float64) if lost is None else None
         state = LOST if lost else (WEAK if weak else OK)
         return self._result(pending, pose, state, lost or weak, inliers, cov,
-                            reason if made_kf else None, used, made_kf, t_solve)
+                            reason if made_kf else None, used, made_kf, t_solve), plain
 
     def _lost_reason(self, frame: Frame, res) -> str | None:
         """Why a solve result cannot be used (None: it can): no edges in the frame,
@@ -237,7 +321,7 @@ class Odometry:
                 out = jax.device_get(_track_jit(
                     kf.edges, frame.dist, frame.nearest_grad,
                     (inverse_np(T_w_c) @ kf.pose).astype(np.float32), self.intrinsics,
-                    config=self.config))
+                    config=self._static, knobs=self.knobs))
                 if self._lost_reason(frame, out) is None and (
                         best is None or float(out.cost) < float(best.cost)):
                     best = out
@@ -273,6 +357,11 @@ class Odometry:
             return self._poses[-1]
         prev, last = self._poses
         return last @ (inverse_np(prev) @ last)
+
+    def _relative_from_world(self) -> tuple[np.ndarray, np.ndarray]:
+        """A, B (float32) from the last two world poses and the keyframe's (float64)."""
+        rel = [(inverse_np(p) @ self._kf.pose).astype(np.float32) for p in self._poses]
+        return rel[-1], rel[0]
 
     def _push(self, pose: np.ndarray) -> None:
         self._poses = (self._poses + [pose])[-2:]

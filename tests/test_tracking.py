@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from edgevo_jax import Config, Odometry
+from edgevo_jax.chunk import track_next_jit
 from edgevo_jax.cli import BUNDLED_CLIP, main
 from edgevo_jax.datasets import load_sequence
 from edgevo_jax.geometry import rotation_angle_np
@@ -17,7 +18,6 @@ from edgevo_jax.preprocess import frame_from_edges, preprocess
 from edgevo_jax.runner import run_sequence, summarise
 from edgevo_jax.selection import keyframe_edges
 from edgevo_jax.solve import KeyframeEdges, track
-from edgevo_jax.tracker import _track_jit
 
 
 @pytest.fixture(scope="module")
@@ -66,9 +66,9 @@ def test_known_motion_is_recovered_on_a_real_frame(bundled, twist):
 
 def test_tracker_compiles_once_and_tracks_the_bundled_clip(bundled):
     """Fixed shapes: one compilation for the whole run; ATE on real fr1 frames under 6 mm."""
-    _track_jit.clear_cache()
+    track_next_jit.clear_cache()
     run = run_sequence(bundled, Config(), progress=False)
-    assert _track_jit._cache_size() == 1
+    assert track_next_jit._cache_size() == 1
     stats = summarise(run, bundled)
     assert stats["frames"] == len(bundled) and stats["lost"] == 0
     assert stats["ate_rmse_m"] < 0.006

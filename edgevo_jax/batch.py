@@ -1,0 +1,336 @@
+"""Many runs at once: sequences x configurations tracked by one compiled program.
+
+Every (sequence, configuration) pair is a *run*. All runs step together: one call of
+``vmap(chunk.track_chunk)`` tracks the next ``chunk`` frames of every run against that run's
+keyframe, with the numeric settings of the solve (``solve.SolveKnobs``: Huber radii, gates,
+eta, iterations, step tolerance) as vmapped arrays, so a grid of them costs one compilation.
+The host then concludes each run's frames in order with that run's own ``Odometry`` (state,
+recovery, keyframe decision and edge selection, local mapping), exactly as the
+frame-by-frame driver does, and a run whose state changed part-way re-tracks the rest of its
+chunk in the next call. Each run's trajectory is therefore the one it gets alone.
+
+Settings of the host side (keyframe rule, selection mode, ``num_edges``, seeds, mapping) may
+differ freely between runs; the edge slots are padded to the largest ``edge_slots`` (padding
+slots are invalid and change nothing). Preprocessing settings (blur, Canny thresholds, depth
+range) make their own groups of pre-processed frames, each computed once per sequence and
+streamed: frames are made when the slowest run needs them and dropped when every run is past
+them. All runs need the same number of pyramid levels and the same image size.
+
+Devices: the runs axis is sharded over ``devices`` (default: all local devices) with a
+``NamedSharding`` over a one-axis mesh ``("runs",)``; the batch is padded with copies of the
+last run to a multiple of the device count. Under ``jax.distributed`` each process takes the
+runs ``process_index::process_count`` on its own local devices (runs are independent, so
+nothing crosses hosts) and returns those.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from functools import cache, partial
+
+import jax
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from tqdm import tqdm
+
+from .camera import Intrinsics
+from .chunk import track_chunk
+from .config import Config
+from .datasets.tum import TumSequence
+from .preprocess import Frame, preprocess
+from .runner import initial_pose
+from .solve import KeyframeEdges, solve_structure
+from .tracker import LOST, FrameResult, Odometry
+
+#: Config fields that change the pre-processed frames (runs differing in them do not share).
+PREPROCESS_FIELDS = ("blur_ksize", "blur_sigma", "canny_low", "canny_high", "min_depth",
+                     "max_depth", "iterations")
+
+
+@dataclass
+class BatchRun:
+    """One run of a batch: the sequence's name, its configuration (and its index in the
+    ``configs`` given), and the per-frame results in order (``poses`` (N, 4, 4)
+    T_world_cam, ``timestamps`` (N,) s)."""
+
+    sequence: str
+    config_index: int
+    config: Config
+    results: list[FrameResult] = field(default_factory=list)
+    num_keyframes: int = 0
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        """(N,) timestamps of the tracked frames (s)."""
+        return np.array([r.timestamp for r in self.results])
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(N, 4, 4) T_world_cam of the tracked frames."""
+        return np.array([r.pose for r in self.results]).reshape(-1, 4, 4)
+
+
+@dataclass
+class BatchResult:
+    """The runs (sequence-major: all configurations of the first sequence first) and what
+    the batch cost: wall time (s, preprocessing and compilation included), the number of
+    device calls, lane-frames solved (including the ones re-tracked after a state change)
+    and the devices used."""
+
+    runs: list[BatchRun]
+    wall_s: float
+    calls: int
+    solved: int
+    devices: list[str]
+
+
+class _Frames:
+    """The pre-processed frames of one sequence under one preprocessing setting: made ahead
+    on a background thread (decoding and OpenCV release the GIL, so this overlaps the
+    device and the host logic) and dropped once every run is past them, so that memory
+    stays bounded whatever the sequence's length."""
+
+    def __init__(self, seq: TumSequence, config: Config, n: int) -> None:
+        self.seq, self.config, self.n = seq, config, n
+        self._futures: dict[int, Future] = {}
+        self._low = 0  # frames before this one are dropped
+
+    def _make(self, i: int) -> Frame:
+        return preprocess(*self.seq.load_frame(i), self.config)
+
+    def prefetch(self, upto: int) -> None:
+        """Start making the frames up to index ``upto`` (exclusive) not yet asked for."""
+        for i in range(min(upto, self.n)):
+            if i not in self._futures and i >= self._low:
+                self._futures[i] = _prefetcher().submit(self._make, i)
+
+    def __getitem__(self, i: int) -> Frame:
+        i = min(i, self.n - 1)
+        if i not in self._futures:
+            self._futures[i] = _prefetcher().submit(self._make, i)
+        return self._futures[i].result()
+
+    def drop_before(self, i: int) -> None:
+        """Forget the frames before index ``i``."""
+        self._low = max(self._low, i)
+        for k in [k for k in self._futures if k < i]:
+            del self._futures[k]
+
+
+@cache
+def _prefetcher() -> ThreadPoolExecutor:
+    """One thread that decodes and pre-processes frames ahead of the batch."""
+    return ThreadPoolExecutor(max_workers=1, thread_name_prefix="edgevo-batch")
+
+
+@dataclass
+class _Lane:
+    run: BatchRun
+    odo: Odometry
+    frames: _Frames
+    timestamps: np.ndarray
+    position: int = 0
+
+    @property
+    def done(self) -> bool:
+        return self.position >= len(self.timestamps)
+
+
+def _preprocess_key(config: Config) -> tuple:
+    return tuple(getattr(config, f) for f in PREPROCESS_FIELDS)
+
+
+def _pad_edges(edges: KeyframeEdges, slots: int) -> KeyframeEdges:
+    """Keyframe edges padded to ``slots`` with invalid slots (rho = 1, like ``pack_edges``)."""
+    edges = KeyframeEdges(*(np.asarray(a) for a in edges))
+    extra = slots - edges.valid.shape[0]
+    if extra == 0:
+        return edges
+    return KeyframeEdges(
+        uv=np.pad(edges.uv, ((0, 0), (0, extra))),
+        rho=np.pad(edges.rho, (0, extra), constant_values=1.0),
+        grad=np.pad(edges.grad, ((0, 0), (0, extra))),
+        valid=np.pad(edges.valid, (0, extra)),
+    )
+
+
+def _step(kf, window_dist, window_ng, source, offset, A, B, intr, knobs, *, config, chunk):
+    """One run's chunk: frames ``offset .. offset + chunk`` of window ``source``."""
+    dist = tuple(jax.lax.dynamic_slice_in_dim(w[source], offset, chunk) for w in window_dist)
+    ng = jax.lax.dynamic_slice_in_dim(window_ng[source], offset, chunk)
+    return track_chunk(kf, dist, ng, A, B, intr, knobs, config)
+
+
+@cache
+def _batched(config: Config, chunk: int, sharding: NamedSharding | None):
+    """The compiled batch step: vmap over runs; the frame windows are shared (not mapped).
+    ``config`` only gives the number of levels."""
+    fn = jax.vmap(partial(_step, config=config, chunk=chunk),
+                  in_axes=(0, None, None, 0, 0, 0, 0, 0, 0))
+    if sharding is None:
+        return jax.jit(fn)
+    return jax.jit(fn, out_shardings=sharding)
+
+
+def _structure(configs: Sequence[Config]) -> Config:
+    """The static part every run shares (number of levels), as a Config."""
+    levels = {c.num_levels for c in configs}
+    if len(levels) != 1:
+        raise ValueError(f"all configurations of a batch need the same number of pyramid "
+                         f"levels (len(iterations)); got {sorted(levels)}")
+    return solve_structure(configs[0])
+
+
+def evaluate(
+    sequences: Sequence[TumSequence],
+    configs: Sequence[Config],
+    *,
+    chunk: int = 2,
+    max_frames: int | None = None,
+    max_lag: int | None = None,
+    devices: Sequence[jax.Device] | None = None,
+    progress: bool = True,
+) -> BatchResult:
+    """Track every sequence under every configuration in one compiled program per step.
+
+    ``chunk`` frames per run per device call (a run's chunk is cut at its next keyframe and
+    re-tracked, so short chunks waste least where keyframes are frequent); ``max_frames``
+    limits each sequence; a run more than ``max_lag`` (default ``chunk``) frames ahead of the
+    slowest run that shares its pre-processed frames waits (each call carries chunk +
+    max_lag frames of every preprocessing group and sequence); ``devices`` to shard
+    the runs over (default ``jax.local_devices()``).
+    Returns the runs in sequence-major order with each run's per-frame results.
+    """
+    if not sequences or not configs:
+        raise ValueError("evaluate needs at least one sequence and one configuration")
+    if chunk < 1:
+        raise ValueError(f"chunk must be positive, got {chunk}")
+    max_lag = chunk if max_lag is None else max_lag
+    sizes = {(s.height, s.width) for s in sequences}
+    if len(sizes) != 1:
+        raise ValueError(f"all sequences of a batch need one image size, got {sorted(sizes)}")
+    static = _structure(configs)
+    t_start = time.perf_counter()
+    sources: dict[tuple, _Frames] = {}
+    lanes: list[_Lane] = []
+    for s, seq in enumerate(sequences):
+        n = len(seq) if max_frames is None else min(len(seq), max_frames)
+        for c, config in enumerate(configs):
+            key = (s, _preprocess_key(config))
+            if key not in sources:
+                sources[key] = _Frames(seq, config, n)
+            run = BatchRun(seq.name, c, config)
+            odo = Odometry(config, seq.intrinsics, initial_pose(seq))
+            lanes.append(_Lane(run, odo, sources[key], np.asarray(seq.timestamps[:n])))
+    mine = lanes[jax.process_index()::jax.process_count()]
+    devices = list(jax.local_devices() if devices is None else devices)
+    sharding = (NamedSharding(Mesh(np.array(devices), ("runs",)), PartitionSpec("runs"))
+                if len(devices) > 1 else None)
+    step = _batched(static, chunk, sharding)
+    srcs = list(sources.values())
+    slots = max(c.edge_slots for c in configs)
+    total = sum(len(lane.timestamps) for lane in mine)
+    bar = tqdm(total=total, desc="batch", unit="frame", disable=not progress, leave=False)
+    calls = solved = 0
+    try:
+        while True:
+            for lane in mine:  # first frames (and frames before any usable keyframe)
+                while not lane.done and lane.odo._kf is None:
+                    i = lane.position
+                    lane.run.results.append(
+                        lane.odo.track_frame(lane.frames[i], lane.timestamps[i]))
+                    lane.position += 1
+                    bar.update(1)
+            live = [lane for lane in mine if not lane.done]
+            if not live:
+                break
+            # each source's window: frames slowest .. slowest + chunk + max_lag of the runs
+            # reading it; a run further ahead waits (bounded memory, fixed shapes)
+            slowest = [min((la.position for la in live if la.frames is src), default=0)
+                       for src in srcs]
+            for src, low in zip(srcs, slowest, strict=True):
+                src.prefetch(low + 2 * (chunk + max_lag))
+            stepping = [not lane.done and lane.position - slowest[srcs.index(lane.frames)]
+                        <= max_lag for lane in mine]
+            inputs = _stack_inputs(mine, stepping, srcs, slowest, chunk + max_lag, slots,
+                                   len(devices))
+            if sharding is not None:
+                per_run = [*inputs[:1], *inputs[3:]]
+                per_run = jax.device_put(per_run, sharding)
+                inputs = (per_run[0], *inputs[1:3], *per_run[1:])
+            out = jax.device_get(step(*inputs))
+            calls += 1
+            solved += sum(stepping) * chunk
+            for b, lane in enumerate(mine):
+                if not stepping[b]:
+                    continue
+                start = lane.position
+                for j in range(min(chunk, len(lane.timestamps) - start)):
+                    res = jax.tree.map(lambda a, b=b, j=j: a[b, j], out)
+                    result, plain = lane.odo.accept(
+                        lane.frames[start + j], lane.timestamps[start + j], res)
+                    lane.run.results.append(result)
+                    lane.position += 1
+                    bar.update(1)
+                    if not plain:
+                        break
+            for src in sources.values():
+                users = [lane.position for lane in mine if lane.frames is src and not lane.done]
+                src.drop_before(min(users) if users else 1 << 62)
+    finally:
+        bar.close()
+        for lane in mine:
+            lane.run.num_keyframes = lane.odo.num_keyframes
+    return BatchResult(runs=[lane.run for lane in mine], wall_s=time.perf_counter() - t_start,
+                       calls=calls, solved=solved, devices=[str(d) for d in devices])
+
+
+def _stack_inputs(lanes: list[_Lane], stepping: list[bool], srcs: list[_Frames],
+                  slowest: list[int], width: int, slots: int, num_devices: int) -> tuple:
+    """The step's inputs: per run (stacked on a leading runs axis, every run so that the
+    compiled program stays the same; a run not stepping repeats a stepping one and its
+    outputs are ignored; padded to a multiple of the device count) the keyframe edges, its
+    window and offset, A, B, intrinsics and solve knobs; and the windows, ``width`` frames
+    of each source from its slowest run on (the last frame repeated past the end)."""
+    per_lane: list = [None] * len(lanes)
+    for b, lane in enumerate(lanes):
+        if not stepping[b]:
+            continue
+        kf, A, B, intr, knobs = lane.odo.chunk_inputs()
+        s = srcs.index(lane.frames)
+        per_lane[b] = (_pad_edges(kf, slots), np.int32(s), np.int32(lane.position - slowest[s]),
+                       A, B, np.asarray(intr, np.float32), knobs)
+    filler = next(x for x in per_lane if x is not None)
+    per_lane = [filler if x is None else x for x in per_lane]
+    per_lane += [filler] * (-len(per_lane) % num_devices)
+    kf, source, offset, A, B, intr, knobs = jax.tree.map(lambda *xs: np.stack(xs), *per_lane)
+    frames = [[src[low + j] for j in range(width)] for src, low in zip(srcs, slowest,
+                                                                       strict=True)]
+    levels = len(frames[0][0].dist)
+    window_dist = tuple(np.stack([np.stack([f.dist[lv] for f in fs]) for fs in frames])
+                        for lv in range(levels))
+    window_ng = np.stack([np.stack([f.nearest_grad for f in fs]) for fs in frames])
+    return kf, window_dist, window_ng, source, offset, A, B, Intrinsics(*intr.T), knobs
+
+
+def summary(run: BatchRun, seq: TumSequence) -> dict:
+    """ATE / RPE (when the sequence has ground truth), frames, keyframes and lost frames of
+    one run, with the configuration's fields."""
+    from .io import matrices_to_poses7
+    from .metrics import ate, rpe
+
+    out: dict = {"sequence": run.sequence, "config_index": run.config_index,
+                 "frames": len(run.results), "keyframes": run.num_keyframes,
+                 "lost": sum(r.state == LOST for r in run.results),
+                 "config": dataclasses.asdict(run.config)}
+    if seq.groundtruth is not None and len(run.results) >= 3:
+        gt_t, gt_p = seq.groundtruth
+        est = matrices_to_poses7(run.poses)
+        out["ate_rmse_m"] = ate(gt_t, gt_p, run.timestamps, est)["rmse"]
+        r = rpe(gt_t, gt_p, run.timestamps, est)
+        out["rpe_rmse_m_per_s"] = r["trans_rmse_m_per_s"]
+    return out
