@@ -26,11 +26,14 @@ nothing crosses hosts) and returns those.
 from __future__ import annotations
 
 import dataclasses
+import itertools
+import json
 import time
 from collections.abc import Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import cache, partial
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -334,3 +337,51 @@ def summary(run: BatchRun, seq: TumSequence) -> dict:
         r = rpe(gt_t, gt_p, run.timestamps, est)
         out["rpe_rmse_m_per_s"] = r["trans_rmse_m_per_s"]
     return out
+
+
+def load_configs(path: str | Path, base: Config | None = None) -> list[Config]:
+    """Configurations from a JSON file: a list of objects of Config overrides, e.g.
+    ``[{}, {"huber_delta": [2, 2, 2]}]``, or a grid ``{"base": {...}, "grid": {"eta": [0.5,
+    0.6], "num_edges": [256, 512]}}`` (every combination, the last key varying fastest).
+    Values are parsed like ``--set`` (lists for tuple fields). ValueError naming the problem
+    for anything else."""
+    path = Path(path)
+    try:
+        spec = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: not valid JSON ({err})") from None
+    base = Config() if base is None else base
+    if isinstance(spec, dict) and set(spec) <= {"base", "grid"}:
+        root = base.with_overrides(_as_items(spec.get("base", {}), path))
+        grid = spec.get("grid", {})
+        if not isinstance(grid, dict) or not all(isinstance(v, list) and v
+                                                 for v in grid.values()):
+            raise ValueError(f"{path}: 'grid' must map Config fields to non-empty lists")
+        keys = list(grid)
+        return [root.with_overrides(_as_items(dict(zip(keys, combo, strict=True)), path))
+                for combo in itertools.product(*(grid[k] for k in keys))]
+    if isinstance(spec, list) and spec and all(isinstance(x, dict) for x in spec):
+        return [base.with_overrides(_as_items(x, path)) for x in spec]
+    raise ValueError(f"{path}: expected a non-empty list of objects of Config overrides, or "
+                     '{"base": {...}, "grid": {"field": [values, ...]}}')
+
+
+def _as_items(overrides: dict, path: Path) -> list[str]:
+    """{"eta": 0.5, "huber_delta": [2, 2, 2]} -> ["eta=0.5", "huber_delta=2,2,2"]."""
+    if not isinstance(overrides, dict):
+        raise ValueError(f"{path}: expected an object of Config overrides, got {overrides!r}")
+    items = []
+    for key, value in overrides.items():
+        if isinstance(value, list):
+            value = ",".join(str(v) for v in value)
+        elif isinstance(value, bool):
+            value = "true" if value else "false"
+        items.append(f"{key}={value}")
+    return items
+
+
+def changed_fields(config: Config) -> dict:
+    """The fields of ``config`` that differ from the defaults."""
+    default = Config()
+    return {f.name: getattr(config, f.name) for f in dataclasses.fields(config)
+            if getattr(config, f.name) != getattr(default, f.name)}

@@ -95,3 +95,42 @@ def test_sharded_over_four_devices_equals_one_device():
     assert four.shape == one.shape and four.shape[0] == 4
     assert np.abs(four[..., :3, 3] - one[..., :3, 3]).max() <= 1e-6
     assert np.abs(four[0] - four[3]).max() > 1e-5  # the runs differ
+
+
+def test_load_configs_grid_and_list(tmp_path):
+    grid = tmp_path / "grid.json"
+    grid.write_text(json.dumps({"base": {"eta": 0.5},
+                                "grid": {"huber_delta": [[1, 1, 1], [2, 2, 2]],
+                                         "num_edges": [256, 512]}}))
+    configs = batch.load_configs(grid)
+    assert [(c.huber_delta[0], c.num_edges) for c in configs] == [
+        (1.0, 256), (1.0, 512), (2.0, 256), (2.0, 512)]
+    assert all(c.eta == 0.5 for c in configs)
+    listed = tmp_path / "list.json"
+    listed.write_text(json.dumps([{}, {"mapping": True, "seed": 3}]))
+    a, b = batch.load_configs(listed)
+    assert a == Config() and b.mapping and b.seed == 3
+    assert batch.changed_fields(b) == {"mapping": True, "seed": 3}
+    for bad, match in [("[1, 2]", "expected a non-empty list"), ("{", "not valid JSON"),
+                       ('{"grid": {"eta": []}}', "non-empty lists"),
+                       ('[{"nope": 1}]', "unknown config key")]:
+        listed.write_text(bad)
+        with pytest.raises(ValueError, match=match):
+            batch.load_configs(listed)
+
+
+def test_cli_batch_writes_results_and_trajectories(tmp_path):
+    from edgevo_jax.cli import main
+    from edgevo_jax.io import read_trajectory
+
+    configs = tmp_path / "c.json"
+    configs.write_text(json.dumps([{}, {"eta": 0.5}]))
+    out = tmp_path / "b.json"
+    assert main(["batch", str(configs), "--out", str(out), "--traj-dir", str(tmp_path / "t"),
+                 "--no-progress"]) == 0
+    got = json.loads(out.read_text())
+    assert [r["config_index"] for r in got["runs"]] == [0, 1]
+    assert got["runs"][1]["changed"] == {"eta": 0.5}
+    assert all(r["ate_rmse_m"] < 0.01 for r in got["runs"])
+    t, poses = read_trajectory(got["runs"][0]["trajectory"])
+    assert len(t) == got["runs"][0]["frames"] and np.all(np.isfinite(poses))
