@@ -3,7 +3,7 @@
 Usage::
 
     python scripts/bench.py [SEQ_DIR ...] [--max-frames N] [--methods m1,m2,...]
-                            [--edgevo NAME=key=value;key=value ...]
+                            [--edgevo NAME=key=value;key=value ...] [--pingpong N]
                             [--out-json bench.json] [--out-md bench.md]
 
 Methods:
@@ -405,13 +405,18 @@ def run_edgevo(overrides: Sequence[str], seq: Any, max_frames: int | None = None
 
 
 def run_method(method: str, seq_dir: str | Path, max_frames: int | None = None,
-               variants: dict[str, list[str]] | None = None) -> dict[str, Any]:
+               variants: dict[str, list[str]] | None = None,
+               pingpong: int | None = None) -> dict[str, Any]:
     """Run one method on one sequence in this process: the result row (``missing`` set
-    instead of the measurements when the method cannot run here)."""
+    instead of the measurements when the method cannot run here). ``pingpong``: play the
+    sequence forward and backward to that many frames (``datasets.pingpong``)."""
     from edgevo_jax.datasets import load_sequence
+    from edgevo_jax.datasets import pingpong as play
 
     variants = {DEFAULT_EDGEVO: [], **(variants or {})}
     seq = load_sequence(seq_dir)
+    if pingpong is not None:
+        seq = play(seq, pingpong)
     row: dict[str, Any] = {"method": method, "sequence": seq.name, "path": str(seq_dir)}
     if method in variants:
         row.update(run_edgevo(variants[method], seq, max_frames))
@@ -425,12 +430,14 @@ def run_method(method: str, seq_dir: str | Path, max_frames: int | None = None,
 
 
 def run_child(method: str, seq_dir: Path, max_frames: int | None, variant_spec: str | None,
-              timeout_s: float | None) -> dict[str, Any]:
+              timeout_s: float | None, pingpong: int | None = None) -> dict[str, Any]:
     """Run ``method`` on ``seq_dir`` in a child process (``--one``); a crash or a timeout
     becomes an ``error`` row."""
     cmd = [sys.executable, str(Path(__file__).resolve()), "--one", method, str(seq_dir)]
     if max_frames is not None:
         cmd += ["--max-frames", str(max_frames)]
+    if pingpong is not None:
+        cmd += ["--pingpong", str(pingpong)]
     if variant_spec is not None:
         cmd += ["--edgevo", variant_spec]
     base = {"method": method, "sequence": seq_dir.name, "path": str(seq_dir)}
@@ -533,6 +540,8 @@ def _parser() -> argparse.ArgumentParser:
                         f"{','.join(PEERS)})")
     p.add_argument("--edgevo", action="append", default=[], metavar="NAME=key=v;key=v",
                    help="an extra edgevo variant (repeatable), e.g. 'edgevo_all=selection=all'")
+    p.add_argument("--pingpong", type=int, default=None, metavar="N",
+                   help="play each sequence forward and backward to N frames (memory, drift)")
     p.add_argument("--out-json", type=Path, default=Path("bench.json"))
     p.add_argument("--out-md", type=Path, default=Path("bench.md"))
     p.add_argument("--timeout", type=float, default=3600.0,
@@ -544,7 +553,7 @@ def _parser() -> argparse.ArgumentParser:
 def _child_main(args: argparse.Namespace, variants: dict[str, list[str]]) -> int:
     if len(args.sequences) != 1:
         raise ValueError("--one takes exactly one sequence")
-    row = run_method(args.one, args.sequences[0], args.max_frames, variants)
+    row = run_method(args.one, args.sequences[0], args.max_frames, variants, args.pingpong)
     row["peak_rss_mib"] = _maxrss_mib()
     print(json.dumps(json_safe(row)), flush=True)
     return 0
@@ -606,7 +615,8 @@ def main(argv: list[str] | None = None,
         for method in methods:
             k += 1
             t0 = time.perf_counter()
-            row = run_child(method, seq_dir, args.max_frames, specs.get(method), args.timeout)
+            row = run_child(method, seq_dir, args.max_frames, specs.get(method), args.timeout,
+                            args.pingpong)
             rows.append(row)
             say(_progress(k, total, row, time.perf_counter() - t0))
     add_ratios(rows)
@@ -616,7 +626,7 @@ def main(argv: list[str] | None = None,
     report = {
         "machine": {**machine_info(("open3d",)), "opencv_odometry": _cv2_odometry()},
         "settings": {
-            "max_frames": args.max_frames, "methods": methods, "warmup_frames": WARMUP_FRAMES,
+            "max_frames": args.max_frames, "pingpong": args.pingpong, "methods": methods, "warmup_frames": WARMUP_FRAMES,
             "edgevo_variants": {m: variants[m] for m in methods if m in variants},
             "sequences": [str(s) for s in seqs],
             "timing": "per-frame wall time, PNG decoding excluded; warm = frames from the third",

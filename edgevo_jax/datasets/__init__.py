@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from edgevo_jax.datasets.pingpong import pingpong, pingpong_indices
 from edgevo_jax.datasets.tum import (
     FREIBURG_CAMERAS,
     FROM_NAME,
@@ -19,5 +20,7 @@ __all__ = [
     "camera_from_name",
     "groundtruth_pose_at",
     "load_sequence",
+    "pingpong",
+    "pingpong_indices",
     "read_file_list",
 ]

@@ -1,0 +1,56 @@
+"""Long sequences from short clips: a clip played forward, then backward, again and again,
+with fresh, evenly spaced timestamps. The motion stays continuous (it reverses at each end)
+and the ground truth follows, so memory and drift can be measured over any length."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .tum import TumSequence
+
+
+def pingpong_indices(n: int, length: int) -> np.ndarray:
+    """Frame indices 0, 1, .., n-1, n-2, .., 0, 1, .. (``length`` of them); (length,) int."""
+    if n < 2:
+        raise ValueError(f"a clip of {n} frame(s) cannot be played back and forth")
+    period = 2 * (n - 1)
+    k = np.arange(length) % period
+    return np.where(k < n, k, period - k)
+
+
+def _interpolate(gt_t: np.ndarray, gt_p: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Ground-truth poses7 (tx ty tz qx qy qz qw) at times t: positions linearly, rotations
+    by normalised linear interpolation of the quaternions (on the same hemisphere)."""
+    order = np.argsort(gt_t)
+    gt_t, gt_p = gt_t[order], gt_p[order]
+    k = np.clip(np.searchsorted(gt_t, t), 1, len(gt_t) - 1)
+    t0, t1 = gt_t[k - 1], gt_t[k]
+    a = np.clip((t - t0) / np.maximum(t1 - t0, 1e-12), 0.0, 1.0)[:, None]
+    p0, p1 = gt_p[k - 1], gt_p[k]
+    q1 = np.where(np.sum(p0[:, 3:] * p1[:, 3:], axis=1, keepdims=True) < 0, -p1[:, 3:],
+                  p1[:, 3:])
+    q = (1 - a) * p0[:, 3:] + a * q1
+    return np.concatenate([(1 - a) * p0[:, :3] + a * p1[:, :3],
+                           q / np.linalg.norm(q, axis=1, keepdims=True)], axis=1)
+
+
+def pingpong(seq: TumSequence, length: int) -> TumSequence:
+    """``seq`` played forward and backward to ``length`` frames. Frame k is the clip's frame
+    ``pingpong_indices(len(seq), length)[k]`` at time t_0 + k * dt (dt: the clip's median
+    frame interval); its ground truth (when the clip has one) is the clip's, interpolated at
+    that frame's original timestamp. Nothing is copied: the frames are read from the clip's
+    files."""
+    if length < 1:
+        raise ValueError(f"length must be positive, got {length}")
+    idx = pingpong_indices(len(seq), length)
+    dt = float(np.median(np.diff(seq.timestamps)))
+    ts = float(seq.timestamps[0]) + dt * np.arange(length)
+    gt = None
+    if seq.groundtruth is not None:
+        gt = (ts, _interpolate(*seq.groundtruth, np.asarray(seq.timestamps)[idx]))
+    return dataclasses.replace(
+        seq, name=f"{seq.name}_pingpong{length}", timestamps=ts,
+        rgb_files=tuple(seq.rgb_files[i] for i in idx),
+        depth_files=tuple(seq.depth_files[i] for i in idx), groundtruth=gt)
