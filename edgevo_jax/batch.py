@@ -10,11 +10,14 @@ frame-by-frame driver does, and a run whose state changed part-way re-tracks the
 chunk in the next call. Each run's trajectory is therefore the one it gets alone.
 
 Settings of the host side (keyframe rule, selection mode, ``num_edges``, seeds, mapping) may
-differ freely between runs; the edge slots are padded to the largest ``edge_slots`` (padding
-slots are invalid and change nothing). Preprocessing settings (blur, Canny thresholds, depth
-range) make their own groups of pre-processed frames, each computed once per sequence and
-streamed: frames are made when the slowest run needs them and dropped when every run is past
-them. All runs need the same number of pyramid levels and the same image size.
+differ freely between runs. Runs whose keyframes hold different numbers of edge slots
+(``num_edges``; ``selection=all`` sizes them per keyframe) go in separate calls of the same
+program, one per slot count: padding the slots would change XLA's summation order, and with
+it (through Levenberg-Marquardt's accept / reject decisions) the trajectory.
+Preprocessing settings (blur, Canny thresholds, depth range) make their own groups of
+pre-processed frames, each computed once per sequence and streamed: frames are made when the
+slowest run needs them and dropped when every run is past them. All runs need the same
+number of pyramid levels and the same image size.
 
 Devices: the runs axis is sharded over ``devices`` (default: all local devices) with a
 ``NamedSharding`` over a one-axis mesh ``("runs",)``; the batch is padded with copies of the
@@ -147,20 +150,6 @@ def _preprocess_key(config: Config) -> tuple:
     return tuple(getattr(config, f) for f in PREPROCESS_FIELDS)
 
 
-def _pad_edges(edges: KeyframeEdges, slots: int) -> KeyframeEdges:
-    """Keyframe edges padded to ``slots`` with invalid slots (rho = 1, like ``pack_edges``)."""
-    edges = KeyframeEdges(*(np.asarray(a) for a in edges))
-    extra = slots - edges.valid.shape[0]
-    if extra == 0:
-        return edges
-    return KeyframeEdges(
-        uv=np.pad(edges.uv, ((0, 0), (0, extra))),
-        rho=np.pad(edges.rho, (0, extra), constant_values=1.0),
-        grad=np.pad(edges.grad, ((0, 0), (0, extra))),
-        valid=np.pad(edges.valid, (0, extra)),
-    )
-
-
 def _step(kf, window_dist, window_ng, source, offset, A, B, intr, knobs, *, config, chunk):
     """One run's chunk: frames ``offset .. offset + chunk`` of window ``source``."""
     dist = tuple(jax.lax.dynamic_slice_in_dim(w[source], offset, chunk) for w in window_dist)
@@ -235,7 +224,6 @@ def evaluate(
                 if len(devices) > 1 else None)
     step = _batched(static, chunk, sharding)
     srcs = list(sources.values())
-    slots = max(c.edge_slots for c in configs)
     total = sum(len(lane.timestamps) for lane in mine)
     bar = tqdm(total=total, desc="batch", unit="frame", disable=not progress, leave=False)
     calls = solved = 0
@@ -259,28 +247,27 @@ def evaluate(
                 src.prefetch(low + 2 * (chunk + max_lag))
             stepping = [not lane.done and lane.position - slowest[srcs.index(lane.frames)]
                         <= max_lag for lane in mine]
-            inputs = _stack_inputs(mine, stepping, srcs, slowest, chunk + max_lag, slots,
-                                   len(devices))
-            if sharding is not None:
-                per_run = [*inputs[:1], *inputs[3:]]
-                per_run = jax.device_put(per_run, sharding)
-                inputs = (per_run[0], *inputs[1:3], *per_run[1:])
-            out = jax.device_get(step(*inputs))
-            calls += 1
-            solved += sum(stepping) * chunk
+            # one call per keyframe edge count K: padding K would change XLA's summation
+            # order and so the trajectory; grouped, each run gives what it gives alone
+            groups: dict[int, list[int]] = {}
             for b, lane in enumerate(mine):
-                if not stepping[b]:
+                if lane.odo.num_keyframes:
+                    groups.setdefault(lane.odo.chunk_inputs()[0].valid.shape[0], []).append(b)
+            for members in groups.values():
+                if not any(stepping[b] for b in members):
                     continue
-                start = lane.position
-                for j in range(min(chunk, len(lane.timestamps) - start)):
-                    res = jax.tree.map(lambda a, b=b, j=j: a[b, j], out)
-                    result, plain = lane.odo.accept(
-                        lane.frames[start + j], lane.timestamps[start + j], res)
-                    lane.run.results.append(result)
-                    lane.position += 1
-                    bar.update(1)
-                    if not plain:
-                        break
+                inputs = _stack_inputs([mine[b] for b in members], srcs, slowest,
+                                       chunk + max_lag, len(devices))
+                if sharding is not None:
+                    per_run = jax.device_put([*inputs[:1], *inputs[3:]], sharding)
+                    inputs = (per_run[0], *inputs[1:3], *per_run[1:])
+                out = jax.device_get(step(*inputs))
+                calls += 1
+                solved += sum(stepping[b] for b in members) * chunk
+                for k, b in enumerate(members):
+                    if stepping[b]:
+                        _conclude_chunk(mine[b], jax.tree.map(lambda a, k=k: a[k], out),
+                                        chunk, bar)
             for src in sources.values():
                 users = [lane.position for lane in mine if lane.frames is src and not lane.done]
                 src.drop_before(min(users) if users else 1 << 62)
@@ -292,24 +279,36 @@ def evaluate(
                        calls=calls, solved=solved, devices=[str(d) for d in devices])
 
 
-def _stack_inputs(lanes: list[_Lane], stepping: list[bool], srcs: list[_Frames],
-                  slowest: list[int], width: int, slots: int, num_devices: int) -> tuple:
-    """The step's inputs: per run (stacked on a leading runs axis, every run so that the
-    compiled program stays the same; a run not stepping repeats a stepping one and its
-    outputs are ignored; padded to a multiple of the device count) the keyframe edges, its
-    window and offset, A, B, intrinsics and solve knobs; and the windows, ``width`` frames
-    of each source from its slowest run on (the last frame repeated past the end)."""
-    per_lane: list = [None] * len(lanes)
-    for b, lane in enumerate(lanes):
-        if not stepping[b]:
-            continue
+def _conclude_chunk(lane: _Lane, out, chunk: int, bar: tqdm) -> None:
+    """Conclude a run's chunk in order, up to the first frame that changes its state."""
+    start = lane.position
+    for j in range(min(chunk, len(lane.timestamps) - start)):
+        res = jax.tree.map(lambda a, j=j: a[j], out)
+        result, plain = lane.odo.accept(lane.frames[start + j], lane.timestamps[start + j], res)
+        lane.run.results.append(result)
+        lane.position += 1
+        bar.update(1)
+        if not plain:
+            break
+
+
+def _stack_inputs(lanes: list[_Lane], srcs: list[_Frames], slowest: list[int], width: int,
+                  num_devices: int) -> tuple:
+    """The step's inputs for runs whose keyframes have the same number of edge slots: per run
+    (stacked on a leading runs axis, padded to a power of two times the device count with
+    copies of the last run, so that few shapes compile) the keyframe edges, its window and
+    offset, A, B, intrinsics and solve knobs; and the windows, ``width`` frames of each
+    source from its slowest run on (the last frame repeated past the end)."""
+    per_lane = []
+    for lane in lanes:
         kf, A, B, intr, knobs = lane.odo.chunk_inputs()
         s = srcs.index(lane.frames)
-        per_lane[b] = (_pad_edges(kf, slots), np.int32(s), np.int32(lane.position - slowest[s]),
-                       A, B, np.asarray(intr, np.float32), knobs)
-    filler = next(x for x in per_lane if x is not None)
-    per_lane = [filler if x is None else x for x in per_lane]
-    per_lane += [filler] * (-len(per_lane) % num_devices)
+        offset = np.int32(min(max(lane.position - slowest[s], 0), width - 1))
+        per_lane.append((KeyframeEdges(*(np.asarray(a) for a in kf)), np.int32(s), offset,
+                         A, B, np.asarray(intr, np.float32), knobs))
+    size = 1 << (len(per_lane) - 1).bit_length()
+    size += -size % num_devices
+    per_lane += [per_lane[-1]] * (size - len(per_lane))
     kf, source, offset, A, B, intr, knobs = jax.tree.map(lambda *xs: np.stack(xs), *per_lane)
     frames = [[src[low + j] for j in range(width)] for src, low in zip(srcs, slowest,
                                                                        strict=True)]

@@ -626,7 +626,8 @@ def main(argv: list[str] | None = None,
     report = {
         "machine": {**machine_info(("open3d",)), "opencv_odometry": _cv2_odometry()},
         "settings": {
-            "max_frames": args.max_frames, "pingpong": args.pingpong, "methods": methods, "warmup_frames": WARMUP_FRAMES,
+            "max_frames": args.max_frames, "pingpong": args.pingpong, "methods": methods,
+            "warmup_frames": WARMUP_FRAMES,
             "edgevo_variants": {m: variants[m] for m in methods if m in variants},
             "sequences": [str(s) for s in seqs],
             "timing": "per-frame wall time, PNG decoding excluded; warm = frames from the third",

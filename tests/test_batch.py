@@ -48,12 +48,16 @@ def test_batch_equals_each_configuration_alone(bundled):
 
 
 def test_batch_of_two_sequences(bundled, shared_clip):
-    desk = load_sequence(shared_clip("rgbd_dataset_freiburg1_desk_clip9"))
-    result = batch.evaluate([bundled, desk], CONFIGS[:2], chunk=2, progress=False)
+    """The bundled clip and 40 frames of fr3_teddy (many keyframes), with two edge budgets:
+    runs of different lengths, frame sources and slot counts."""
+    teddy = load_sequence(shared_clip("rgbd_dataset_freiburg3_teddy_first200"))
+    configs = [CONFIGS[0], CONFIGS[2]]
+    result = batch.evaluate([bundled, teddy], configs, chunk=2, max_frames=40, progress=False)
     assert [(r.sequence, r.config_index) for r in result.runs] == [
-        (bundled.name, 0), (bundled.name, 1), (desk.name, 0), (desk.name, 1)]
-    for run, seq in zip(result.runs, [bundled, bundled, desk, desk], strict=True):
-        alone = run_sequence(seq, run.config, progress=False)
+        (bundled.name, 0), (bundled.name, 1), (teddy.name, 0), (teddy.name, 1)]
+    for run, seq in zip(result.runs, [bundled, bundled, teddy, teddy], strict=True):
+        alone = run_sequence(seq, run.config, progress=False, max_frames=40)
+        assert len(run.results) == len(alone.results)
         assert np.abs(run.poses[:, :3, 3] - alone.poses[:, :3, 3]).max() <= 1e-6
 
 
