@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 
 from .camera import Intrinsics
-from .interp import bilinear, nearest
+from .interp import bilinear, nearest_edge_gradient
 from .residuals import warp
 
 
@@ -40,15 +40,16 @@ def carried_gradient(
 
 def reproject(
     intr: Intrinsics, T_new_host, pts_host: jnp.ndarray, grad: jnp.ndarray,
-    field: jnp.ndarray, nearest_grad: jnp.ndarray,
+    field: jnp.ndarray, edge_map: jnp.ndarray,
 ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray]:
     """Host edges (points (3, N) in the host camera, gradients (2, N)) seen from the new
     keyframe: pixels (2, N), residuals (N,) in the new keyframe's level-0 distance field,
     cosine (N,) between the carried gradient and the nearest edge's, and visibility (N,)."""
     uv, pts = warp(intr, T_new_host, pts_host)
     r, inside = bilinear(field, uv)
-    g_near = nearest(nearest_grad, uv).astype(r.dtype) * (1.0 / 127.0)
-    cos = jnp.sum(carried_gradient(intr, T_new_host, pts_host, grad) * g_near, axis=0)
+    g_near, found = nearest_edge_gradient(edge_map, uv)
+    cos = jnp.where(found, jnp.sum(carried_gradient(intr, T_new_host, pts_host, grad)
+                                   * g_near.astype(r.dtype), axis=0), -1.0)
     return uv, r, cos, inside & (pts[2] > 1e-6)
 
 

@@ -47,6 +47,7 @@ from .camera import Intrinsics
 from .chunk import track_chunk
 from .config import Config
 from .datasets.tum import TumSequence
+from .interp import stack_edge_maps
 from .preprocess import Frame, preprocess
 from .runner import initial_pose
 from .solve import KeyframeEdges, solve_structure
@@ -153,7 +154,8 @@ def _preprocess_key(config: Config) -> tuple:
 def _step(kf, window_dist, window_ng, source, offset, A, B, intr, knobs, *, config, chunk):
     """One run's chunk: frames ``offset .. offset + chunk`` of window ``source``."""
     dist = tuple(jax.lax.dynamic_slice_in_dim(w[source], offset, chunk) for w in window_dist)
-    ng = jax.lax.dynamic_slice_in_dim(window_ng[source], offset, chunk)
+    ng = jax.tree.map(lambda w: jax.lax.dynamic_slice_in_dim(w[source], offset, chunk),
+                      window_ng)
     return track_chunk(kf, dist, ng, A, B, intr, knobs, config)
 
 
@@ -315,7 +317,7 @@ def _stack_inputs(lanes: list[_Lane], srcs: list[_Frames], slowest: list[int], w
     levels = len(frames[0][0].dist)
     window_dist = tuple(np.stack([np.stack([f.dist[lv] for f in fs]) for fs in frames])
                         for lv in range(levels))
-    window_ng = np.stack([np.stack([f.nearest_grad for f in fs]) for fs in frames])
+    window_ng = stack_edge_maps([stack_edge_maps([f.edge_map for f in fs]) for fs in frames])
     return kf, window_dist, window_ng, source, offset, A, B, Intrinsics(*intr.T), knobs
 
 

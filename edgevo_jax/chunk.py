@@ -19,6 +19,7 @@ import jax.numpy as jnp
 
 from .camera import Intrinsics
 from .config import Config
+from .interp import EdgeMap
 from .solve import KeyframeEdges, SolveKnobs, TrackResult, track
 
 
@@ -38,22 +39,22 @@ def predict(A: jnp.ndarray, B: jnp.ndarray) -> jnp.ndarray:
 def track_next(
     kf: KeyframeEdges,
     dist: tuple[jnp.ndarray, ...],
-    nearest_grad: jnp.ndarray,
+    edge_map: EdgeMap,
     A: jnp.ndarray,
     B: jnp.ndarray,
     intr: Intrinsics,
     knobs: SolveKnobs,
     config: Config,
 ) -> TrackResult:
-    """Track one frame (dist pyramid, nearest_grad (H, W, 2)) from the constant-velocity
+    """Track one frame (dist pyramid, ``interp.EdgeMap``) from the constant-velocity
     prediction of its last two keyframe-relative poses A, B (see ``predict``)."""
-    return track(kf, dist, nearest_grad, predict(A, B), intr, config, knobs)
+    return track(kf, dist, edge_map, predict(A, B), intr, config, knobs)
 
 
 def track_chunk(
     kf: KeyframeEdges,
     dist: tuple[jnp.ndarray, ...],
-    nearest_grad: jnp.ndarray,
+    edge_map: EdgeMap,
     A: jnp.ndarray,
     B: jnp.ndarray,
     intr: Intrinsics,
@@ -61,7 +62,7 @@ def track_chunk(
     config: Config,
 ) -> TrackResult:
     """Track C frames in order against one keyframe: dist holds one (C, H / 2**l, W / 2**l)
-    array per level, nearest_grad is (C, H, W, 2). Each frame starts from the prediction of
+    array per level, edge_map holds (C, H, W) arrays. Each frame starts from the prediction of
     the two before it (A, B for the first), as ``track_next`` does. Returns the C
     TrackResults stacked on a leading axis."""
 
@@ -70,7 +71,7 @@ def track_chunk(
         res = track_next(kf, frame[0], frame[1], a, b, intr, knobs, config)
         return (res.T_c_k, a), res
 
-    _, out = jax.lax.scan(step, (A, B), (tuple(dist), nearest_grad))
+    _, out = jax.lax.scan(step, (A, B), (tuple(dist), edge_map))
     return out
 
 
@@ -87,6 +88,9 @@ def batch_of_one(fn):
         out = jax.vmap(partial(fn, config=config))(*jax.tree.map(lambda a: a[None], args))
         return jax.tree.map(lambda a: a[0], out)
 
+    one.__name__ = f"{fn.__name__}_jit"
+    one.__doc__ = f"``{fn.__name__}`` jitted, run as a batch of one (``batch_of_one``).\n\n" \
+        + (fn.__doc__ or "")
     return jax.jit(one, static_argnames="config")
 
 

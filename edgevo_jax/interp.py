@@ -6,7 +6,11 @@ pixel. Points outside [0, W-1] x [0, H-1] are clamped for the lookup and flagged
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
+import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 def _corners(field: jnp.ndarray, uv: jnp.ndarray):
@@ -49,3 +53,54 @@ def nearest(field: jnp.ndarray, uv: jnp.ndarray) -> jnp.ndarray:
     iu = jnp.clip(jnp.round(uv[0]), 0, w - 1).astype(jnp.int32)
     iv = jnp.clip(jnp.round(uv[1]), 0, h - 1).astype(jnp.int32)
     return jnp.take(field.reshape(h * w, c), iv * w + iu, axis=0, mode="clip").T
+
+
+class EdgeMap(NamedTuple):
+    """Where the nearest edge p' of a level-0 pixel is, and its gradient: the level-0
+    distance field dist0 (H, W) (px) and code (H, W) uint8, the direction of the edge at
+    each edge pixel (1 + its gradient angle in 254 steps; see ``preprocess.direction_codes``),
+    copied to the empty neighbours of edge pixels; 0 elsewhere."""
+
+    dist0: jnp.ndarray
+    code: jnp.ndarray
+
+
+def nearest_edge_gradient(edges: EdgeMap, uv0: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """Normalised gradient g(p') (2, K) of the nearest edge to level-0 pixels uv0 (2, K),
+    and whether one was found (K,).
+
+    The distance field's gradient points away from the nearest edge, so
+    p' ~ p - D(p) grad D(p) / |grad D(p)| (one step, exact for a straight edge); the code
+    map, filled one pixel around the edges, gives that edge's direction at round(p'). A
+    nearest-pixel lookup: piecewise constant in uv0, so it is held constant under
+    differentiation."""
+    d, g, _ = bilinear_with_grad(edges.dist0, jax.lax.stop_gradient(uv0))
+    return edge_direction_at(edges.code, uv0, d, g)
+
+
+def edge_direction_at(
+    code: jnp.ndarray, uv0: jnp.ndarray, d: jnp.ndarray, g: jnp.ndarray
+) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """``nearest_edge_gradient`` from the distance d (K,) (level-0 px) and a vector g (2, K)
+    along the distance field's gradient at uv0 (2, K), e.g. a coarser level's: the step is
+    p' = uv0 - d g / |g|, and code (H, W) the direction map. Held constant under
+    differentiation."""
+    uv0, d, g = (jax.lax.stop_gradient(a) for a in (uv0, d, g))
+    norm = jnp.sqrt(jnp.sum(g * g, axis=0))
+    target = uv0 - g * (d / jnp.maximum(norm, 1e-6))
+    c = nearest(code[..., None], target)[0].astype(jnp.int32)
+    table = _direction_table(uv0.dtype)
+    return jnp.take(table, c, axis=1), c > 0
+
+
+def _direction_table(dtype) -> jnp.ndarray:
+    """(2, 255) unit vectors of the direction codes (column 0, no edge, is zero)."""
+    angle = np.arange(-1, 254) * (2.0 * np.pi / 254.0) - np.pi
+    table = np.stack([np.cos(angle), np.sin(angle)])
+    table[:, 0] = 0.0
+    return jnp.asarray(table, dtype)
+
+
+def stack_edge_maps(maps) -> EdgeMap:
+    """EdgeMaps (numpy) stacked on a new leading axis: dist0 (n, H, W), code (n, H, W)."""
+    return EdgeMap(*(np.stack(xs) for xs in zip(*maps, strict=True)))

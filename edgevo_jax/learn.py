@@ -54,13 +54,12 @@ from .config import Config
 from .geometry import retract_left
 from .params import Params, edge_features, edge_weight
 from .preprocess import Frame
-from .residuals import consistency_dots, residual_and_jacobian
+from .residuals import consistency_dots_at_level, residual_and_jacobian, residual_jacobian_grad
 from .selection import reobservation_probability
 from .solve import (
     KeyframeEdges,
     LevelSystem,
     TrackResult,
-    level_to_0,
     lm_iteration,
     robust_system,
     track_result,
@@ -115,12 +114,13 @@ def _system(
 
 def _decisions(
     T: jaxlie.SE3, params: Params, data: _EdgeData, kf: KeyframeEdges,
-    nearest_grad: jnp.ndarray, level: int, config: Config, consistency: str,
+    edge_map: jnp.ndarray, level: int, config: Config, consistency: str,
 ) -> tuple[jnp.ndarray, jnp.ndarray]:
     """The hard decisions at T (as ``solve.normal_equations`` takes them): the inlier mask
     and g(p) . g(p') (K,) of the nearest edges p'."""
-    r, _, ok, uv_c = residual_and_jacobian(data.field, data.intr.at_level(level), T, data.pts_k)
-    dots = consistency_dots(kf.grad, nearest_grad, level_to_0(uv_c, level))
+    r, _, ok, uv_c, grad = residual_jacobian_grad(data.field, data.intr.at_level(level), T,
+                                                  data.pts_k)
+    dots = consistency_dots_at_level(kf.grad, edge_map, uv_c, r, grad, level)
     mask = kf.valid & ok & (r <= config.max_residual[level])
     if consistency == "hard":
         mask = mask & (dots >= params.eta)
@@ -213,7 +213,7 @@ class _Stationarity(NamedTuple):
 def track_differentiable(
     kf: KeyframeEdges,
     dist: tuple[jnp.ndarray, ...],
-    nearest_grad: jnp.ndarray,
+    edge_map: jnp.ndarray,
     T_init: jnp.ndarray,
     intr: Intrinsics,
     params: Params,
@@ -254,7 +254,7 @@ def track_differentiable(
         data = data_at(level, kf_s, dist_s, intr_s, mag_s)
 
         def system_at(T, data=data, level=level):
-            mask, dots = _decisions(T, params_s, data, kf_s, nearest_grad, level, config,
+            mask, dots = _decisions(T, params_s, data, kf_s, edge_map, level, config,
                                     consistency)
             return _system(T, params_s, data, mask, dots, kf_s.valid, level, config,
                            consistency)
@@ -264,7 +264,7 @@ def track_differentiable(
     data = data_at(0, kf, dist, intr, mag)
     if adjoint == "implicit":
         mask, dots = _decisions(T, params_s, data_at(0, kf_s, dist_s, intr_s, mag_s), kf_s,
-                                nearest_grad, 0, config, consistency)
+                                edge_map, 0, config, consistency)
         f = data.pts_k.dtype
         inputs = (params, data, mask.astype(f), dots, kf.valid.astype(f))
         T = jaxlie.SE3(_implicit_pose(_Stationarity(config, consistency), T.wxyz_xyz, inputs))

@@ -38,6 +38,7 @@ from .activation import activate, reproject
 from .camera import Intrinsics, unproject
 from .config import Config
 from .geometry import inverse_np, orthonormalise_np
+from .interp import EdgeMap
 from .mapping import (
     MappingConfig,
     Prior,
@@ -64,7 +65,7 @@ class _WindowKeyframe:
     grad: np.ndarray  # (2, K)
     valid: np.ndarray  # (K,)
     dist0: jnp.ndarray  # (H, W) level-0 distance field, on device
-    nearest_grad: jnp.ndarray  # (H, W, 2) int8, on device
+    edge_map: EdgeMap  # on device
     active: np.ndarray = field(default=None)  # type: ignore[assignment]
     track: np.ndarray = field(default=None)  # type: ignore[assignment]
     rho_sensor: np.ndarray = field(default=None)  # type: ignore[assignment]
@@ -171,7 +172,7 @@ class LocalMap:
         uv, rho, grad, valid = _candidate_slots(edges, cfg.num_edges)
         new = _WindowKeyframe(
             pose=np.asarray(pose, np.float64), uv=uv, rho=rho, grad=grad, valid=valid,
-            dist0=jnp.asarray(frame.dist[0]), nearest_grad=jnp.asarray(frame.nearest_grad))
+            dist0=jnp.asarray(frame.dist[0]), edge_map=jax.tree.map(jnp.asarray, frame.edge_map))
         if self.prior is not None:
             self.prior = append_keyframe_to_prior(self.prior, jnp.asarray(new.pose, jnp.float32))
         self._activate(new)
@@ -192,7 +193,7 @@ class LocalMap:
         height, width = self.shape
         track, act = _activation_jit(
             self.camera, T, hosts["uv"], hosts["rho"], hosts["grad"], hosts["valid"],
-            hosts["active"], hosts["track"], new.dist0, new.nearest_grad,
+            hosts["active"], hosts["track"], new.dist0, new.edge_map,
             width=width, height=height, cell=self.config.activation_cell,
             max_angle_deg=float(self.config.activation_max_angle_deg),
             gate=float(self.config.max_residual[0]))
@@ -227,7 +228,7 @@ class LocalMap:
             valid=jnp.asarray(np.stack(valid)),
             fields=jnp.stack([kf.dist0 for kf in self.window]),
             intrinsics=jnp.asarray(self.intrinsics), grad=jnp.asarray(np.stack(grad)),
-            nearest_grad=jnp.stack([kf.nearest_grad for kf in self.window]),
+            edge_map=jax.tree.map(lambda *xs: jnp.stack(xs), *[kf.edge_map for kf in self.window]),
             rho_prior=jnp.asarray(np.stack(sensor)))
         return problem, picks
 

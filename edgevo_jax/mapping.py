@@ -42,7 +42,7 @@ import numpy as np
 
 from .camera import Intrinsics, project, unproject
 from .config import Config
-from .interp import bilinear, bilinear_with_grad
+from .interp import EdgeMap, bilinear, bilinear_with_grad
 from .residuals import gradient_consistent
 from .robust import huber_cost, huber_weights
 
@@ -55,8 +55,8 @@ class WindowProblem(NamedTuple):
     fields (n, H, W) level-0 distance fields (pixels); intrinsics (4,) fx, fy, cx, cy.
     Optional, for EdgeVO's gradient-consistency test (a match counts only where
     g(p) . g(p') >= eta, p' the nearest edge to the projection): grad (n, 2, A) the hosted
-    edges' normalised image gradients and nearest_grad (n, H, W, 2) int8 each keyframe's
-    nearest-edge gradient map (preprocess.Frame.nearest_grad). None: no such test.
+    edges' normalised image gradients and edge_map each keyframe's ``interp.EdgeMap``
+    (stacked, (n, H, W) arrays; preprocess.Frame.edge_map). None: no such test.
     rho_prior (n, A), optional: measured inverse depths (the depth sensor's), which
     MappingConfig.depth_prior_sigma turns into the prior term 0.5 ((rho - rho_prior) / sigma)^2
     per active edge. None: no depth measurement.
@@ -69,7 +69,7 @@ class WindowProblem(NamedTuple):
     fields: jnp.ndarray
     intrinsics: jnp.ndarray
     grad: jnp.ndarray | None = None
-    nearest_grad: jnp.ndarray | None = None
+    edge_map: EdgeMap | None = None
     rho_prior: jnp.ndarray | None = None
 
     @property
@@ -252,10 +252,10 @@ def edge_residuals(problem: WindowProblem, eta: float = 0.6) -> EdgeResiduals:
     considered = problem.valid[hosts]
     ok = considered & inside & front & jnp.isfinite(r)
     consistent = jnp.ones_like(ok)
-    if problem.grad is not None and problem.nearest_grad is not None:
+    if problem.grad is not None and problem.edge_map is not None:
         g_host = jnp.moveaxis(problem.grad[hosts], 2, 0).reshape(2, n, (n - 1) * A)
         consistent = jax.vmap(gradient_consistent, in_axes=(1, 0, 0, None))(
-            g_host, problem.nearest_grad, flat, eta).reshape(n, n - 1, A)
+            g_host, problem.edge_map, flat, eta).reshape(n, n - 1, A)
     return EdgeResiduals(r, J_rho, J_xi, J_c, considered, ok, consistent)
 
 
@@ -593,7 +593,8 @@ def refine(
 def remove_keyframe(problem: WindowProblem, index: int) -> WindowProblem:
     """The window without keyframe ``index`` (static): the others keep their order."""
     keep = np.array([k for k in range(problem.poses.shape[0]) if k != index])
-    return WindowProblem(*(a if name == "intrinsics" or a is None else a[keep]
+    return WindowProblem(*(a if name == "intrinsics" or a is None
+                           else jax.tree.map(lambda x: x[keep], a)
                            for name, a in zip(WindowProblem._fields, problem, strict=True)))
 
 

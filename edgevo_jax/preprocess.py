@@ -2,9 +2,10 @@
 
 gray -> Gaussian blur -> Canny; Sobel gradients (their L2 magnitude is the one Canny
 thresholds); level-0 Euclidean distance field to the nearest edge (OpenCV's 5x5 chamfer
-approximation, computed in the same pass as the nearest-edge labels), plus the normalised
-gradient of that nearest edge at every pixel; levels 1..L-1 by linear downscaling of level 0
-with distances rescaled to the level's pixels.
+approximation); levels 1..L-1 by linear downscaling of level 0 with distances rescaled to
+the level's pixels. The nearest edge's gradient (the consistency test) is found on the device
+from the distance field and a map of edge directions (``interp.EdgeMap``): a labelled
+distance transform would give it for every pixel, at three times the cost of the plain one.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import cv2
 import numpy as np
 
 from .config import Config
+from .interp import EdgeMap
 
 
 @dataclass(frozen=True)
@@ -26,8 +28,8 @@ class Frame:
     edge_uv (N, 2) float32 pixels of the Canny edges; edge_grad (N, 2) their normalised
     image gradient; edge_mag (N,) Sobel L2 magnitude; edge_depth (N,) metres (0 = missing);
     dist: one float32 distance field per level, (H / 2**l, W / 2**l), in that level's pixels;
-    nearest_grad (H, W, 2) int8: normalised gradient of the nearest edge to each pixel,
-    times 127 (the quantisation error, 1/127, is far below the consistency gate eta).
+    edge_map: ``interp.EdgeMap`` (level-0 field and (H, W) uint8 direction codes), from
+    which the device finds the nearest edge's gradient.
     """
 
     edge_uv: np.ndarray
@@ -35,7 +37,7 @@ class Frame:
     edge_mag: np.ndarray
     edge_depth: np.ndarray
     dist: tuple[np.ndarray, ...]
-    nearest_grad: np.ndarray
+    edge_map: EdgeMap
 
     @property
     def num_edges(self) -> int:
@@ -81,13 +83,19 @@ def distance_pyramid(level0: np.ndarray, num_levels: int) -> tuple[np.ndarray, .
     return tuple(levels)
 
 
-def nearest_edge_map(grad: np.ndarray, labels: np.ndarray) -> np.ndarray:
-    """Per pixel, the int8-quantised normalised gradient (H, W, 2) of the edge that
-    ``labels`` (1-based, 0 = none) names; both components are packed into one int16 so the
-    gather is a single pass."""
-    q = np.clip(np.round(grad * 127.0), -127, 127).astype(np.int8)
-    packed = np.concatenate([np.zeros(1, np.int16), q.view(np.int16).ravel()])
-    return np.take(packed, labels).view(np.int8).reshape(*labels.shape, 2)
+def direction_codes(pts: np.ndarray, grad: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) uint8 map of edge directions: at each edge pixel pts (N, 2) (u, v), 1 + its
+    normalised gradient grad (N, 2)'s angle in 254 steps (1.4 degrees, far below the
+    consistency gate); each empty pixel next to an edge takes a neighbour's code (a 3x3
+    dilation), so that a lookup one pixel off the edge still finds it; 0 elsewhere."""
+    h, w = shape
+    code = np.zeros((h, w), np.uint8)
+    if pts.shape[0]:
+        angle = np.arctan2(grad[:, 1], grad[:, 0])
+        q = np.round((angle + np.pi) * (254.0 / (2.0 * np.pi))).astype(np.int32) % 254
+        code[pts[:, 1], pts[:, 0]] = (1 + q).astype(np.uint8)
+    grown = cv2.dilate(code, np.ones((3, 3), np.uint8))
+    return np.where(code > 0, code, grown)
 
 
 def preprocess(rgb: np.ndarray, depth: np.ndarray, config: Config) -> Frame:
@@ -125,16 +133,14 @@ class PreprocessJob:
 
     @classmethod
     def start(cls, edges, gx, gy, depth, config: Config) -> PreprocessJob:
-        """Find the edge pixels and launch the labelled distance transform."""
-        pts = cv2.findNonZero(edges)  # raster order: the order distanceTransform labels them
+        """Find the edge pixels and launch the distance transform."""
+        pts = cv2.findNonZero(edges)  # raster order
         transform = None
         if pts is not None:
-            # One pass gives both: a 5x5 chamfer L2 distance (within 0.08 px of the exact one
-            # inside the 5 px residual gate on TUM frames) and the nearest edge of each pixel.
+            # a 5x5 chamfer L2 distance (within 0.08 px of the exact one inside the 5 px
+            # residual gate on TUM frames)
             transform = _worker().submit(
-                cv2.distanceTransformWithLabels, cv2.bitwise_not(edges), cv2.DIST_L2,
-                cv2.DIST_MASK_5, labelType=cv2.DIST_LABEL_PIXEL,
-            )
+                cv2.distanceTransform, cv2.bitwise_not(edges), cv2.DIST_L2, cv2.DIST_MASK_5)
         pts = np.zeros((0, 2), np.int32) if pts is None else pts.reshape(-1, 2)
         return cls(edges, gx, gy, depth, config, pts, transform)
 
@@ -147,12 +153,11 @@ class PreprocessJob:
         egy = np.take(self.gy.ravel(), flat).astype(np.float32)
         mag = np.hypot(egx, egy)
         grad = np.stack([egx, egy], axis=-1) / np.maximum(mag, 1e-6)[:, None]
+        code = direction_codes(self.pts, grad, (h, w))
         if self.transform is not None:
-            dist0, labels = self.transform.result()
-            nearest_grad = nearest_edge_map(grad, labels)
+            dist0 = self.transform.result()
         else:  # no edge at all: every distance is "far"; the tracker reports the frame lost
             dist0 = np.full((h, w), float(h + w), np.float32)
-            nearest_grad = np.zeros((h, w, 2), np.int8)
         cfg = self.config
         d = np.take(self.depth.ravel(), flat).astype(np.float32)
         d = np.where(np.isfinite(d) & (d >= cfg.min_depth) & (d <= cfg.max_depth), d, 0.0)
@@ -162,5 +167,5 @@ class PreprocessJob:
             edge_mag=mag.astype(np.float32),
             edge_depth=d.astype(np.float32),
             dist=distance_pyramid(dist0, cfg.num_levels),
-            nearest_grad=nearest_grad,
+            edge_map=EdgeMap(dist0, code),
         )

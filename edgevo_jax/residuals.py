@@ -16,7 +16,13 @@ import jaxlie
 
 from .camera import Intrinsics, project
 from .geometry import retract_left, transform_points
-from .interp import bilinear, bilinear_with_grad, nearest
+from .interp import (
+    EdgeMap,
+    bilinear,
+    bilinear_with_grad,
+    edge_direction_at,
+    nearest_edge_gradient,
+)
 
 
 def warp(
@@ -42,9 +48,17 @@ def residual_and_jacobian(
 ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray]:
     """Residuals (K,), analytic Jacobian w.r.t. a left twist [v, w] (6, K), validity (K,)
     and warped pixels (2, K)."""
+    r, J, ok, uv_c, _ = residual_jacobian_grad(field, intr, T_c_k, pts_k)
+    return r, J, ok, uv_c
+
+
+def residual_jacobian_grad(
+    field: jnp.ndarray, intr: Intrinsics, T_c_k: jaxlie.SE3, pts_k: jnp.ndarray
+) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray]:
+    """``residual_and_jacobian`` and the field's gradient at the warped pixels (2, K)."""
     uv_c, pts = warp(intr, T_c_k, pts_k)
     r, grad, inside = bilinear_with_grad(field, uv_c)
-    return r, point_jacobian(intr, pts, grad), inside & (pts[2] > 1e-6), uv_c
+    return r, point_jacobian(intr, pts, grad), inside & (pts[2] > 1e-6), uv_c, grad
 
 
 def point_jacobian(intr: Intrinsics, pts: jnp.ndarray, grad: jnp.ndarray) -> jnp.ndarray:
@@ -71,18 +85,31 @@ def residual_jacobian_autodiff(
 
 
 def gradient_consistent(
-    grad_k: jnp.ndarray, nearest_grad: jnp.ndarray, uv0: jnp.ndarray, eta: float
+    grad_k: jnp.ndarray, edges: EdgeMap, uv0: jnp.ndarray, eta: float
 ) -> jnp.ndarray:
     """g(p) . g(p') >= eta, with g(p) (2, K) the keyframe edges' normalised gradients and p'
-    the nearest edge to the warped level-0 pixels uv0 (2, K); nearest_grad (H, W, 2) holds
-    g(p') * 127 as int8 (see preprocess.nearest_edge_map)."""
-    return consistency_dots(grad_k, nearest_grad, uv0) >= eta
+    the nearest edge to the warped level-0 pixels uv0 (2, K) (``nearest_edge_gradient``);
+    False where no nearest edge is found."""
+    return consistency_dots(grad_k, edges, uv0) >= eta
 
 
-def consistency_dots(
-    grad_k: jnp.ndarray, nearest_grad: jnp.ndarray, uv0: jnp.ndarray
-) -> jnp.ndarray:
+def consistency_dots(grad_k: jnp.ndarray, edges: EdgeMap, uv0: jnp.ndarray) -> jnp.ndarray:
     """g(p) . g(p') (K,), the quantity ``gradient_consistent`` compares with eta (same
-    arguments). Piecewise constant in uv0 (a nearest-pixel lookup): zero derivative."""
-    g_near = nearest(nearest_grad, uv0).astype(grad_k.dtype) * (1.0 / 127.0)
-    return jnp.sum(grad_k * g_near, axis=0)
+    arguments); -1 where no nearest edge is found. Piecewise constant in uv0: zero
+    derivative."""
+    return _dots(grad_k, *nearest_edge_gradient(edges, uv0))
+
+
+def consistency_dots_at_level(
+    grad_k: jnp.ndarray, edges: EdgeMap, uv_l: jnp.ndarray, r: jnp.ndarray,
+    field_grad: jnp.ndarray, level: int,
+) -> jnp.ndarray:
+    """``consistency_dots`` for warped level-l pixels uv_l (2, K) whose residuals r (K,) and
+    field gradients (2, K) are known (the solve has them): the step to the nearest edge is
+    taken on level l's field, with no further lookups in level 0's."""
+    uv0 = (uv_l + 0.5) * (2.0**level) - 0.5
+    return _dots(grad_k, *edge_direction_at(edges.code, uv0, r * (2.0**level), field_grad))
+
+
+def _dots(grad_k: jnp.ndarray, g_near: jnp.ndarray, found: jnp.ndarray) -> jnp.ndarray:
+    return jnp.where(found, jnp.sum(grad_k * g_near.astype(grad_k.dtype), axis=0), -1.0)

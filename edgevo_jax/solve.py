@@ -19,7 +19,8 @@ import numpy as np
 from .camera import Intrinsics, unproject
 from .config import Config
 from .geometry import retract_left
-from .residuals import gradient_consistent, residual_and_jacobian, warp
+from .interp import EdgeMap
+from .residuals import consistency_dots_at_level, residual_jacobian_grad, warp
 from .robust import huber_cost, huber_weights
 
 
@@ -104,7 +105,7 @@ def normal_equations(
     pts_k: jnp.ndarray,
     kf: KeyframeEdges,
     field: jnp.ndarray,
-    nearest_grad: jnp.ndarray,
+    edge_map: EdgeMap,
     intr: Intrinsics,
     level: int,
     knobs: SolveKnobs,
@@ -116,8 +117,8 @@ def normal_equations(
     other valid keyframe edge (gated, inconsistent or out of view) the Huber cost of the gate,
     so that rejecting a match never lowers the cost.
     """
-    r, J, ok, uv_c = residual_and_jacobian(field, intr.at_level(level), T, pts_k)
-    consistent = gradient_consistent(kf.grad, nearest_grad, level_to_0(uv_c, level), knobs.eta)
+    r, J, ok, uv_c, grad = residual_jacobian_grad(field, intr.at_level(level), T, pts_k)
+    consistent = consistency_dots_at_level(kf.grad, edge_map, uv_c, r, grad, level) >= knobs.eta
     delta, gate = knobs.huber_delta[level], knobs.max_residual[level]
     mask = kf.valid & ok & (r <= gate) & consistent
     return robust_system(r, J, mask, kf.valid, delta, gate)
@@ -196,7 +197,7 @@ def align_level(
     pts_k: jnp.ndarray,
     kf: KeyframeEdges,
     field: jnp.ndarray,
-    nearest_grad: jnp.ndarray,
+    edge_map: EdgeMap,
     intr: Intrinsics,
     level: int,
     knobs: SolveKnobs,
@@ -211,7 +212,7 @@ def align_level(
     """
 
     def system_at(T):
-        return normal_equations(T, pts_k, kf, field, nearest_grad, intr, level, knobs)
+        return normal_equations(T, pts_k, kf, field, edge_map, intr, level, knobs)
 
     def cond(state):
         i, _, _, _, step = state
@@ -237,7 +238,7 @@ def rms_flow(uv_from: jnp.ndarray, uv_to: jnp.ndarray, mask: jnp.ndarray) -> jnp
 def track(
     kf: KeyframeEdges,
     dist: tuple[jnp.ndarray, ...],
-    nearest_grad: jnp.ndarray,
+    edge_map: EdgeMap,
     T_init: jnp.ndarray,
     intr: Intrinsics,
     config: Config,
@@ -245,7 +246,7 @@ def track(
 ) -> TrackResult:
     """Align keyframe edges to the frame's distance-field pyramid, coarsest level first.
 
-    dist: one field per level (H / 2**l, W / 2**l); nearest_grad (H, W, 2) int8;
+    dist: one field per level (H / 2**l, W / 2**l); edge_map: the frame's ``interp.EdgeMap``;
     T_init: (4, 4) initial T_cur_kf. Jit with ``config`` static; its numbers are read from
     ``knobs`` (default: ``solve_knobs(config)``), which may be traced.
     """
@@ -253,7 +254,7 @@ def track(
     pts_k = unproject(intr, kf.uv, kf.rho)
     T = jaxlie.SE3.from_matrix(T_init)
     for level in reversed(range(config.num_levels)):
-        T, final = align_level(T, pts_k, kf, dist[level], nearest_grad, intr, level, knobs)
+        T, final = align_level(T, pts_k, kf, dist[level], edge_map, intr, level, knobs)
     return track_result(T, final, pts_k, kf, dist[0].shape, intr)
 
 

@@ -18,6 +18,7 @@ from .camera import Intrinsics
 from .chunk import track_chunk_jit, track_next_jit
 from .config import Config
 from .geometry import inverse_np, orthonormalise_np, scale_motion_np
+from .interp import stack_edge_maps
 from .keyframes import keyframe_reason
 from .local_map import LocalMap
 from .preprocess import Frame, preprocess
@@ -141,7 +142,7 @@ class Odometry:
         if self._kf is None:
             return _Pending(frame, timestamp, self._initial, None, preprocess_ms, t_submit)
         A, B = self._rel
-        output = track_next_jit(self._kf.edges, frame.dist, frame.nearest_grad, A, B,
+        output = track_next_jit(self._kf.edges, frame.dist, frame.edge_map, A, B,
                                 self.intrinsics, self.knobs, config=self._static)
         return _Pending(frame, timestamp, self._predict(), output, preprocess_ms, t_submit)
 
@@ -196,7 +197,7 @@ class Odometry:
             raise ValueError(f"a chunk takes 1 to {size} frames, got {len(frames)}")
         frames = list(frames) + [frames[-1]] * (size - len(frames))
         dist = tuple(np.stack([f.dist[lv] for f in frames]) for lv in range(len(frames[0].dist)))
-        ng = np.stack([f.nearest_grad for f in frames])
+        ng = stack_edge_maps([f.edge_map for f in frames])
         kf, A, B, intr, knobs = self.chunk_inputs()
         return track_chunk_jit(kf, dist, ng, A, B, intr, knobs, config=self._static)
 
@@ -319,7 +320,7 @@ class Odometry:
             best = None
             for T_w_c in guesses:
                 out = jax.device_get(_track_jit(
-                    kf.edges, frame.dist, frame.nearest_grad,
+                    kf.edges, frame.dist, frame.edge_map,
                     (inverse_np(T_w_c) @ kf.pose).astype(np.float32), self.intrinsics,
                     config=self._static, knobs=self.knobs))
                 if self._lost_reason(frame, out) is None and (

@@ -417,7 +417,7 @@ def plot_frame(
     gray: (H, W) image the frame was computed from; frame: a
     :class:`edgevo_jax.preprocess.Frame` (edge_uv (N, 2) pixels (u, v) = (column, row),
     edge_mag (N,) Sobel L2 gradient magnitude in 8-bit intensity units, dist: one distance
-    field per level, (H / 2**l, W / 2**l) in that level's pixels, nearest_grad (H, W, 2)).
+    field per level, (H / 2**l, W / 2**l) in that level's pixels, edge_map).
     Top row: the gray image, the Canny edge pixels coloured by gradient magnitude, and the
     gradient direction of the nearest edge at every pixel (degrees, cyclic colours); bottom
     row: the distance-field pyramid, one panel per level, each in its own pixels and colour
@@ -436,8 +436,11 @@ def plot_frame(
     if uv.ndim != 2 or uv.shape[1] != 2 or mag.shape != (uv.shape[0],):
         raise ValueError(f"frame.edge_uv must be (N, 2) and edge_mag (N,), got {uv.shape} and "
                          f"{mag.shape}")
+    import jax.numpy as jnp
     import matplotlib as mpl
     from matplotlib.colors import PowerNorm
+
+    from .interp import nearest_edge_gradient
 
     levels = len(frame.dist)
     cols = max(3, levels)
@@ -464,9 +467,11 @@ def plot_frame(
     fig.colorbar(im, ax=ax, shrink=0.85, label="gradient magnitude (Sobel, 8-bit units)")
 
     ax = axes[0, 2]
-    g = np.asarray(frame.nearest_grad, np.float64)
-    angle = np.degrees(np.arctan2(g[..., 1], g[..., 0]))
-    angle = np.where(np.hypot(g[..., 0], g[..., 1]) > 0, angle, np.nan)
+    vv, uu = np.mgrid[0:h, 0:w]
+    g, found = nearest_edge_gradient(frame.edge_map, jnp.asarray(
+        np.stack([uu.ravel(), vv.ravel()]).astype(np.float32)))
+    g, found = np.asarray(g, np.float64), np.asarray(found)
+    angle = np.where(found, np.degrees(np.arctan2(g[1], g[0])), np.nan).reshape(h, w)
     im = ax.imshow(angle, cmap=mpl.colormaps["twilight"].with_extremes(bad="black"),
                    vmin=-180.0, vmax=180.0, interpolation="nearest")
     ax.set_title("(c) gradient direction of the nearest edge", fontsize=11)

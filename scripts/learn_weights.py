@@ -63,6 +63,7 @@ from edgevo_jax import Config
 from edgevo_jax.datasets import groundtruth_pose_at, load_sequence
 from edgevo_jax.datasets.tum import SHARED_TUM
 from edgevo_jax.geometry import inverse_np
+from edgevo_jax.interp import stack_edge_maps
 from edgevo_jax.io import json_safe, poses7_to_matrices
 from edgevo_jax.learn import edge_magnitudes, relative_pose_error, rpe_loss, track_differentiable
 from edgevo_jax.params import Params
@@ -115,7 +116,7 @@ def build_data(seq, frames: list[int], pairs_of: dict[str, list[tuple[int, int]]
         frame = preprocess(*seq.load_frame(f), config)
         for lvl, d in enumerate(frame.dist):
             dist_levels[lvl].append(d)
-        grads.append(frame.nearest_grad)
+        grads.append(frame.edge_map)
         if f in keyframes:
             e = keyframe_edges(frame, config, seed=seed + f, intr=seq.intrinsics)
             kfs[f] = (e, edge_magnitudes(frame, e))
@@ -127,7 +128,7 @@ def build_data(seq, frames: list[int], pairs_of: dict[str, list[tuple[int, int]]
                        stack([np.asarray(kfs[f][0].valid) for f in keyframes]))
     return {
         "dist": tuple(stack(d) for d in dist_levels),
-        "nearest_grad": stack(grads),
+        "edge_map": jax.tree.map(jnp.asarray, stack_edge_maps(grads)),
         "kf": kf,
         "mag": stack([kfs[f][1] for f in keyframes]),
         "kf_index": k_index,
@@ -145,13 +146,14 @@ def pair_arrays(pairs: list[tuple[int, int]], gt: dict[int, np.ndarray], data: d
 
 def make_functions(data: dict, intr, config: Config, rot_weight: float):
     """Jitted batch functions of (params, kf slots, frame slots, T_gt)."""
-    arrays = (data["kf"], data["mag"], data["dist"], data["nearest_grad"])
+    arrays = (data["kf"], data["mag"], data["dist"], data["edge_map"])
 
     def one(params, arrays, ki, fi):
         kf_all, mag_all, dist_all, ng_all = arrays
         kf = jax.tree.map(lambda x: x[ki], kf_all)
         dist = tuple(d[fi] for d in dist_all)
-        out = track_differentiable(kf, dist, ng_all[fi], jnp.eye(4, dtype=jnp.float32), intr,
+        ng = jax.tree.map(lambda x: x[fi], ng_all)
+        out = track_differentiable(kf, dist, ng, jnp.eye(4, dtype=jnp.float32), intr,
                                    params, config, mag=mag_all[ki], adjoint="unrolled")
         return out.T_c_k
 

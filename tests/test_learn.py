@@ -50,13 +50,13 @@ def clip():
 
 
 def problem(clip, k, dtype):
-    """(kf, dist, nearest_grad, mag, T_gt) of pair (0, k) as device arrays of ``dtype``."""
+    """(kf, dist, edge_map, mag, T_gt) of pair (0, k) as device arrays of ``dtype``."""
     _, edges, mag, frames, T_gt = clip
     kf = KeyframeEdges(jnp.asarray(edges.uv, dtype), jnp.asarray(edges.rho, dtype),
                        jnp.asarray(edges.grad, dtype), jnp.asarray(edges.valid))
     f = frames[k]
     dist = tuple(jnp.asarray(d, dtype) for d in f.dist)
-    return kf, dist, jnp.asarray(f.nearest_grad), jnp.asarray(mag, dtype), jnp.asarray(
+    return kf, dist, jax.tree.map(jnp.asarray, f.edge_map), jnp.asarray(mag, dtype), jnp.asarray(
         T_gt[k], dtype)
 
 

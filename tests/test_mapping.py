@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 from edgevo_jax import Config
 from edgevo_jax.cli import BUNDLED_CLIP
 from edgevo_jax.datasets import load_sequence
+from edgevo_jax.interp import stack_edge_maps
 from edgevo_jax.mapping import (
     MappingConfig,
     WindowProblem,
@@ -297,7 +298,7 @@ def scene() -> dict[str, np.ndarray]:
     h, w = f0.shape
     poses = np.stack([np.asarray(jaxlie.SE3.exp(t).as_matrix(), np.float64) for t in TWISTS])
     rng = np.random.default_rng(0)
-    out = {k: [] for k in ("fields", "nearest_grad", "uv", "rho", "valid", "grad")}
+    out = {k: [] for k in ("fields", "edge_map", "uv", "rho", "valid", "grad")}
     for T_w_k in poses:
         T_k_w = np.linalg.inv(T_w_k)
         q = T_k_w[:3, :3] @ P_w + T_k_w[:3, 3:]
@@ -322,24 +323,27 @@ def scene() -> dict[str, np.ndarray]:
         rho_k[:ACTIVE] = 1.0 / q[2, pick]
         g_k[:, :ACTIVE] = grad[pick].T
         out["fields"].append(D)
-        out["nearest_grad"].append(frame.nearest_grad)
+        out["edge_map"].append(frame.edge_map)
         out["uv"].append(uv_k)
         out["rho"].append(rho_k)
         out["valid"].append(np.arange(SLOTS) < ACTIVE)
         out["grad"].append(g_k)
-    return {"poses": poses, "intrinsics": intr, **{k: np.stack(v) for k, v in out.items()}}
+    maps = stack_edge_maps(out.pop("edge_map"))
+    return {"poses": poses, "intrinsics": intr, "edge_map": maps,
+            **{k: np.stack(v) for k, v in out.items()}}
 
 
 def first(s: dict[str, np.ndarray], k: int = WINDOW) -> dict[str, np.ndarray]:
     """The scene restricted to keyframes 0..k-1."""
-    return {key: (v if key == "intrinsics" else v[:k]) for key, v in s.items()}
+    return {key: (v if key == "intrinsics" else jax.tree.map(lambda x: x[:k], v))
+            for key, v in s.items()}
 
 
 def as_problem(s: dict[str, np.ndarray]) -> WindowProblem:
     return WindowProblem(
         jnp.asarray(s["poses"]), jnp.asarray(s["uv"]), jnp.asarray(s["rho"]),
         jnp.asarray(s["valid"]), jnp.asarray(s["fields"]), jnp.asarray(s["intrinsics"]),
-        jnp.asarray(s["grad"]), jnp.asarray(s["nearest_grad"]))
+        jnp.asarray(s["grad"]), jax.tree.map(jnp.asarray, s["edge_map"]))
 
 
 def perturbed(s: dict[str, np.ndarray], seed: int) -> dict[str, np.ndarray]:
@@ -431,7 +435,8 @@ def test_sliding_the_window_keeps_it_where_the_full_refinement_put_it(scene, ref
             v = np.concatenate([np.tile(g, 4), np.zeros(4)]) / 2.0
             assert np.linalg.norm(H @ v) < 1e-6 * np.linalg.norm(H, 2)
         rest = remove_keyframe(full, 0)
-        new = as_problem({k: (v if k == "intrinsics" else v[WINDOW:]) for k, v in scene.items()})
+        new = as_problem({k: (v if k == "intrinsics" else jax.tree.map(lambda x: x[WINDOW:], v))
+                          for k, v in scene.items()})
         rng = np.random.default_rng(5)
         poses = np.concatenate([np.asarray(rest.poses), np.asarray(new.poses)])
         for k in range(1, 5):
@@ -440,7 +445,8 @@ def test_sliding_the_window_keeps_it_where_the_full_refinement_put_it(scene, ref
             xi[3:] *= np.deg2rad(0.2) / np.linalg.norm(xi[3:])
             poses[k] = np.asarray(jaxlie.SE3.exp(xi).as_matrix()) @ poses[k]
         window = WindowProblem(*(
-            a if name == "intrinsics" or a is None else jnp.concatenate([a, b])
+            a if name == "intrinsics" or a is None
+            else jax.tree.map(lambda x, y: jnp.concatenate([x, y]), a, b)
             for name, a, b in zip(WindowProblem._fields, rest, new, strict=True)))
         window = window._replace(poses=jnp.asarray(poses))
         out, stats = refine_jit(window, WINDOW_CONFIG,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
@@ -56,7 +57,7 @@ def test_known_motion_is_recovered_on_a_real_frame(bundled, twist):
     f1 = warped_edge_frame(f0, T_true, bundled.intrinsics, config)
     edges = keyframe_edges(f0, config, seed=0, intr=bundled.intrinsics)
     kf = KeyframeEdges(*(jnp.asarray(a) for a in edges))
-    res = track(kf, tuple(map(jnp.asarray, f1.dist)), jnp.asarray(f1.nearest_grad),
+    res = track(kf, tuple(map(jnp.asarray, f1.dist)), jax.tree.map(jnp.asarray, f1.edge_map),
                 jnp.eye(4, dtype=jnp.float32), bundled.intrinsics, config)
     err = np.linalg.inv(T_true) @ np.asarray(res.T_c_k, np.float64)
     assert np.linalg.norm(err[:3, 3]) < 2e-3, err  # metres
