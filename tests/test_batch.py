@@ -115,6 +115,8 @@ def test_load_configs_grid_and_list(tmp_path):
     a, b = batch.load_configs(listed)
     assert a == Config() and b.mapping and b.seed == 3
     assert batch.changed_fields(b) == {"mapping": True, "seed": 3}
+    assert batch.changed_fields(b, base=a.replace(seed=3)) == {"mapping": True}
+    assert batch.configs_from_spec([{"eta": 0.7}])[0].eta == 0.7
     for bad, match in [("[1, 2]", "expected a non-empty list"), ("{", "not valid JSON"),
                        ('{"grid": {"eta": []}}', "non-empty lists"),
                        ('[{"nope": 1}]', "unknown config key")]:
