@@ -51,7 +51,7 @@ from .interp import stack_edge_maps
 from .preprocess import Frame, preprocess
 from .runner import initial_pose
 from .solve import KeyframeEdges, solve_structure
-from .tracker import LOST, FrameResult, Odometry
+from .tracker import LOST, FrameResult, FrameResults, Odometry
 
 #: Config fields that change the pre-processed frames (runs differing in them do not share).
 PREPROCESS_FIELDS = ("blur_ksize", "blur_sigma", "canny_low", "canny_high", "min_depth",
@@ -59,7 +59,7 @@ PREPROCESS_FIELDS = ("blur_ksize", "blur_sigma", "canny_low", "canny_high", "min
 
 
 @dataclass
-class BatchRun:
+class BatchRun(FrameResults):
     """One run of a batch: the sequence's name, its configuration (and its index in the
     ``configs`` given), and the per-frame results in order (``poses`` (N, 4, 4)
     T_world_cam, ``timestamps`` (N,) s)."""
@@ -69,16 +69,6 @@ class BatchRun:
     config: Config
     results: list[FrameResult] = field(default_factory=list)
     num_keyframes: int = 0
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        """(N,) timestamps of the tracked frames (s)."""
-        return np.array([r.timestamp for r in self.results])
-
-    @property
-    def poses(self) -> np.ndarray:
-        """(N, 4, 4) T_world_cam of the tracked frames."""
-        return np.array([r.pose for r in self.results]).reshape(-1, 4, 4)
 
 
 @dataclass

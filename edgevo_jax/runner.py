@@ -27,11 +27,11 @@ from .datasets.tum import TumSequence, groundtruth_pose_at
 from .io import TrajectoryWriter, matrices_to_poses7, poses7_to_matrices
 from .metrics import ate, rpe
 from .preprocess import start_preprocess
-from .tracker import LOST, OK, WEAK, FrameResult, Odometry
+from .tracker import LOST, OK, WEAK, FrameResult, FrameResults, Odometry
 
 
 @dataclass
-class RunResult:
+class RunResult(FrameResults):
     """A finished (or interrupted) run: per-frame results in order, the wall time of each
     frame with image decoding excluded (ms; with pipelining this is the frame period), the
     decode times (ms), and the first tracked frame's time, which includes compilation (s)."""
@@ -43,16 +43,6 @@ class RunResult:
     num_keyframes: int = 0
     stopped_at: int | None = None  # index of the first frame not processed, if interrupted
     config: Config | None = None
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        """(N,) timestamps of the processed frames."""
-        return np.array([r.timestamp for r in self.results])
-
-    @property
-    def poses(self) -> np.ndarray:
-        """(N, 4, 4) T_world_cam of the processed frames."""
-        return np.array([r.pose for r in self.results]).reshape(-1, 4, 4)
 
 
 def enable_compilation_cache() -> str | None:

@@ -55,6 +55,22 @@ class FrameResult:
     total_ms: float
 
 
+class FrameResults:
+    """Mixin for a run's ``results`` (list of FrameResult): its timestamps and poses."""
+
+    results: list[FrameResult]
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        """(N,) timestamps of the tracked frames (s)."""
+        return np.array([r.timestamp for r in self.results])
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(N, 4, 4) T_world_cam of the tracked frames."""
+        return np.array([r.pose for r in self.results]).reshape(-1, 4, 4)
+
+
 @dataclass(frozen=True)
 class _Pending:
     """A frame whose solve has been dispatched (asynchronously) but not read back yet."""
