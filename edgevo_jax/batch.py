@@ -101,8 +101,8 @@ class _Frames:
 
     def prefetch(self, upto: int) -> None:
         """Start making the frames up to index ``upto`` (exclusive) not yet asked for."""
-        for i in range(min(upto, self.n)):
-            if i not in self._futures and i >= self._low:
+        for i in range(self._low, min(upto, self.n)):
+            if i not in self._futures:
                 self._futures[i] = _prefetcher().submit(self._make, i)
 
     def __getitem__(self, i: int) -> Frame:
