@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from edgevo_jax.camera import Intrinsics, project, unproject
 from edgevo_jax.geometry import transform_points
-from edgevo_jax.interp import bilinear, bilinear_with_grad
+from edgevo_jax.interp import bicubic, bicubic_with_grad, bilinear, bilinear_with_grad
 from edgevo_jax.residuals import residual_and_jacobian, residual_jacobian_autodiff, warp
 from edgevo_jax.robust import huber_cost, huber_weights
 
@@ -61,6 +61,69 @@ def test_bilinear_flags_points_outside():
     uv = jnp.array([[-0.1, 0.0, W - 1.0, W - 0.9, 5.0], [5.0, 0.0, H - 1.0, 5.0, H - 0.5]])
     _, inside = bilinear(field, uv)
     assert inside.tolist() == [False, True, True, False, False]
+
+
+_bicubic_jit = jax.jit(bicubic_with_grad)
+
+
+@given(coef=st.lists(st.floats(-1.0, 1.0), min_size=9, max_size=9),
+       seed=st.integers(0, 2**16))
+@settings(max_examples=30, deadline=None)
+def test_bicubic_is_exact_on_biquadratic_fields(coef, seed):
+    """Catmull-Rom reproduces sum c_ab u^a v^b (a, b <= 2) and its gradient where the 4 x 4
+    pixels lie inside the field, and passes through the pixel values everywhere."""
+    with jax.enable_x64(True):
+        v, u = np.mgrid[0:H, 0:W].astype(np.float64) / 50.0  # keep the values O(1)
+        c = np.asarray(coef).reshape(3, 3)
+
+        def poly(u, v):
+            return sum(c[a, b] * u**a * v**b for a in range(3) for b in range(3))
+
+        def grad(u, v):
+            du = sum(a * c[a, b] * u ** (a - 1) * v**b for a in range(1, 3) for b in range(3))
+            dv = sum(b * c[a, b] * u**a * v ** (b - 1) for a in range(3) for b in range(1, 3))
+            return du / 50.0, dv / 50.0
+
+        field = jnp.asarray(poly(u, v))
+        rng = np.random.default_rng(seed)
+        uv = np.stack([rng.uniform(1, W - 2, 50), rng.uniform(1, H - 2, 50)])
+        val, g, inside = _bicubic_jit(field, jnp.asarray(uv))
+        assert bool(jnp.all(inside))
+        np.testing.assert_allclose(val, poly(uv[0] / 50.0, uv[1] / 50.0), atol=1e-11)
+        np.testing.assert_allclose(g, np.stack(grad(uv[0] / 50.0, uv[1] / 50.0)), atol=1e-11)
+        pixels = jnp.asarray(np.stack([rng.integers(0, W, 40), rng.integers(0, H, 40)]), float)
+        np.testing.assert_allclose(_bicubic_jit(field, pixels)[0],
+                                   field[pixels[1].astype(int), pixels[0].astype(int)],
+                                   atol=1e-12)
+
+
+def test_bicubic_derivative_equals_autodiff_and_finite_differences():
+    """On a rough field, near and at the borders too; the derivative is continuous across
+    pixel boundaries (C1), unlike the bilinear one."""
+    with jax.enable_x64(True):
+        rng = np.random.default_rng(3)
+        field = smooth_field(rng)
+        uv = np.stack([rng.uniform(0, W - 1, 200), rng.uniform(0, H - 1, 200)])
+        uv[:, :4] = [[0.0, 0.3, W - 1.0, W - 1.4], [H - 1.0, 0.7, 0.0, H - 1.2]]
+        uv = jnp.asarray(uv)
+        _, g, inside = _bicubic_jit(field, uv)
+        assert bool(jnp.all(inside))
+        auto = jax.jit(jax.vmap(jax.grad(lambda p: bicubic(field, p[:, None])[0][0]),
+                                in_axes=1, out_axes=1))(uv)
+        np.testing.assert_allclose(g, auto, rtol=1e-12, atol=1e-12)
+        interior = (uv[0] > 1e-3) & (uv[0] < W - 1 - 1e-3) & (uv[1] > 1e-3) & (uv[1] < H - 1 - 1e-3)
+        eps = 1e-6
+        for k in range(2):
+            d = jnp.zeros((2, 1)).at[k].set(eps)
+            fd = (_bicubic_jit(field, uv + d)[0] - _bicubic_jit(field, uv - d)[0]) / (2 * eps)
+            np.testing.assert_allclose(np.asarray(g[k])[interior], np.asarray(fd)[interior],
+                                       rtol=1e-6, atol=1e-7)
+        # across a pixel boundary (u = 40): the bicubic gradient is continuous
+        across = jnp.array([[40.0 - 1e-9, 40.0 + 1e-9], [30.3, 30.3]])
+        g_cubic = bicubic_with_grad(field, across)[1]
+        g_linear = bilinear_with_grad(field, across)[1]
+        np.testing.assert_allclose(g_cubic[:, 0], g_cubic[:, 1], atol=1e-7)
+        assert float(jnp.max(jnp.abs(g_linear[:, 0] - g_linear[:, 1]))) > 1e-3
 
 
 @pytest.mark.parametrize("scale", [0.0, 1e-7, 1e-3, 0.03])
