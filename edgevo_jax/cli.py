@@ -35,6 +35,9 @@ def _parser() -> argparse.ArgumentParser:
                      metavar=("FX", "FY", "CX", "CY"),
                      help="override the camera (then no undistortion is applied)")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
+    run.add_argument("--params", type=Path, default=None, metavar="JSON",
+                     help="learnt parameters (Huber radii, eta, edge weighting, reobs_a): a "
+                          "JSON of Params fields, or scripts/learn_weights.py's log")
     ba = sub.add_parser("batch", help="track sequences under many configurations at once")
     ba.add_argument("configs", type=Path,
                     help='JSON: a list of Config overrides, or {"base": {...}, "grid": '
@@ -132,6 +135,7 @@ def _run(args: argparse.Namespace) -> int:
     from .runner import enable_compilation_cache, run_sequence, summarise
 
     config = Config().with_overrides(args.overrides)
+    params = _read_params(args.params, config) if args.params is not None else None
     enable_compilation_cache()
     path = args.sequence if args.sequence is not None else BUNDLED_CLIP
     kwargs = {"depth_factor": args.depth_factor}
@@ -141,7 +145,7 @@ def _run(args: argparse.Namespace) -> int:
     out = args.out if args.out is not None else Path(f"{seq.name}.traj.txt")
     try:
         run = run_sequence(seq, config, out=out, progress=not args.no_progress,
-                           max_frames=args.max_frames)
+                           max_frames=args.max_frames, params=params)
     except KeyboardInterrupt as err:
         notes = getattr(err, "__notes__", [])
         print("edgevo: interrupted" + (f"; {notes[0]}" if notes else ""), file=sys.stderr)
@@ -152,6 +156,26 @@ def _run(args: argparse.Namespace) -> int:
         args.stats.write_text(json.dumps(json_safe(stats), indent=2) + "\n")
     print(_summary_text(stats, out))
     return 0
+
+
+def _read_params(path: Path, config):
+    """Params from a JSON file: Params fields at the top level, or under "fitted_params"
+    (``scripts/learn_weights.py``'s log)."""
+    from .params import params_from_dict
+
+    try:
+        values = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise FileNotFoundError(f"--params file not found: {path}") from None
+    except json.JSONDecodeError as err:
+        raise ValueError(f"--params {path} is not JSON: {err}") from None
+    if not isinstance(values, dict):
+        raise ValueError(f"--params {path} must hold a JSON object")
+    values = values.get("fitted_params", values)
+    try:
+        return params_from_dict(values, config)
+    except (ValueError, TypeError) as err:
+        raise ValueError(f"--params {path}: {err}") from None
 
 
 def _batch(args: argparse.Namespace) -> int:

@@ -21,10 +21,12 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .config import Config
+from .robust import EdgeWeighting, weighting_features, weighting_scale
+from .solve import SolveKnobs, solve_knobs
 
 #: Default temperature of the soft gradient-consistency weight (see ``Params``): edges whose
 #: g(p) . g(p') lies more than ~0.1 from eta get a weight within 1e-4 of the hard test's.
@@ -71,16 +73,75 @@ def edge_features(
 ) -> jnp.ndarray:
     """Normalised features (4, K) of K edges: log(m / canny_high) of the gradient magnitude m
     (0 at the culling threshold; pass zeros when unknown), log depth (m), the residual over
-    the level's gate, and the level over the coarsest one."""
-    dtype = r.dtype
-    f_mag = jnp.log(jnp.maximum(mag.astype(dtype), 1e-6) / config.canny_high)
-    f_depth = -jnp.log(jnp.maximum(rho.astype(dtype), 1e-6))
-    f_res = r / config.max_residual[level]
-    f_level = jnp.full_like(r, level / max(config.num_levels - 1, 1))
-    return jnp.stack([jnp.where(mag > 0, f_mag, 0.0), f_depth, f_res, f_level])
+    the level's gate, and the level over the coarsest one (``robust.weighting_features``)."""
+    return weighting_features(mag, rho, r, config.max_residual[level],
+                              _level_features(config)[level], config.canny_high)
 
 
 def edge_weight(params: Params, features: jnp.ndarray) -> jnp.ndarray:
     """The weighting model's scale (K,) of each edge's Huber weight: 2 * sigmoid(w . f + b)
     for features (4, K); exactly 1 with the default (zero) weights."""
-    return 2.0 * jax.nn.sigmoid(params.weight_w @ features + params.weight_b)
+    return weighting_scale(params.weight_w, params.weight_b, features)
+
+
+def _level_features(config: Config) -> np.ndarray:
+    """Each level's feature value, level / (L - 1) (float64)."""
+    n = config.num_levels
+    return np.arange(n, dtype=np.float64) / max(n - 1, 1)
+
+
+def weighting_of(params: Params, config: Config) -> EdgeWeighting:
+    """The weighting model of ``params`` as the solve takes it (``robust.EdgeWeighting``;
+    arrays of params' dtype, traceable)."""
+    dtype = jnp.asarray(params.weight_w).dtype
+    return EdgeWeighting(jnp.asarray(params.weight_w), jnp.asarray(params.weight_b),
+                         jnp.asarray(config.canny_high, dtype),
+                         jnp.asarray(_level_features(config), dtype))
+
+
+def solve_knobs_of(params: Params, config: Config) -> SolveKnobs:
+    """The plain tracker's ``SolveKnobs`` with the numbers of ``params`` (host side, numpy
+    float32, for ``tracker.Odometry(..., params=...)``): Huber radius exp(log_huber) per
+    level, consistency threshold eta, and the weighting model when it is not the identity
+    (any of weight_w, weight_b nonzero; otherwise ``weighting`` stays None and the solve
+    compiles to the program of ``solve.solve_knobs(config)``: ``Params.default(config)``
+    gives the same numbers, hence the same trajectory). The plain tracker keeps the hard
+    consistency test, so ``log_temperature`` does not enter; ``reobs_a`` enters the edge
+    selection (``selection.keyframe_edges(..., reobs_a=)``), not the solve."""
+    log_huber = np.asarray(params.log_huber, np.float64)
+    if log_huber.shape != (config.num_levels,):
+        raise ValueError(f"Params.log_huber has shape {log_huber.shape}, the config has "
+                         f"{config.num_levels} pyramid levels")
+    w = np.asarray(params.weight_w, np.float32)
+    b = np.asarray(params.weight_b, np.float32)
+    weighting = None
+    if np.any(w != 0) or b != 0:
+        weighting = EdgeWeighting(w, b, np.float32(config.canny_high),
+                                  _level_features(config).astype(np.float32))
+    return solve_knobs(config)._replace(
+        huber_delta=np.exp(log_huber).astype(np.float32),
+        eta=np.asarray(params.eta, np.float32),
+        weighting=weighting,
+    )
+
+
+def params_to_dict(params: Params) -> dict[str, float | list[float]]:
+    """Params as plain numbers (JSON), one entry per field."""
+    return {name: np.asarray(v, np.float64).tolist()
+            for name, v in zip(Params._fields, params, strict=True)}
+
+
+def params_from_dict(values: dict, config: Config) -> Params:
+    """Params from ``params_to_dict``'s numbers (other keys are ignored; missing fields take
+    ``Params.default(config)``'s values). ValueError for a field of the wrong shape."""
+    default = Params.default(config)
+    fields = {}
+    for name, d in zip(Params._fields, default, strict=True):
+        if name not in values:
+            fields[name] = d
+            continue
+        v = jnp.asarray(np.asarray(values[name], np.float64), d.dtype)
+        if v.shape != d.shape:
+            raise ValueError(f"Params.{name} must have shape {d.shape}, got {v.shape}")
+        fields[name] = v
+    return Params(**fields)

@@ -26,6 +26,7 @@ from .config import Config
 from .datasets.tum import TumSequence, groundtruth_pose_at
 from .io import TrajectoryWriter, matrices_to_poses7, poses7_to_matrices
 from .metrics import ate, rpe
+from .params import Params
 from .preprocess import start_preprocess
 from .tracker import LOST, OK, WEAK, FrameResult, FrameResults, Odometry
 
@@ -75,10 +76,12 @@ def run_sequence(
     out: str | Path | None = None,
     progress: bool = True,
     max_frames: int | None = None,
+    params: Params | None = None,
 ) -> RunResult:
     """Track every associated frame of ``seq``; write the TUM trajectory to ``out`` line by
-    line (flushed; renamed into place at the end). Returns the per-frame results."""
-    odo = Odometry(config, seq.intrinsics, initial_pose(seq))
+    line (flushed; renamed into place at the end). Returns the per-frame results.
+    ``params``: learnt parameters for the tracker (``tracker.Odometry``; None: the config's)."""
+    odo = Odometry(config, seq.intrinsics, initial_pose(seq), params=params)
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
     run = RunResult(config=config)
     writer = TrajectoryWriter(out) if out is not None else None

@@ -276,9 +276,10 @@ def _bucket(n: int, cap: int) -> int:
 
 def select(
     cands: Candidates, config: Config, *, T_prior: np.ndarray, intr: Intrinsics,
-    width: int, height: int, seed: int,
+    width: int, height: int, seed: int, reobs_a: float | None = None,
 ) -> np.ndarray:
-    """Indices into ``cands`` chosen by ``config.selection`` (at most ``edge_slots``)."""
+    """Indices into ``cands`` chosen by ``config.selection`` (at most ``edge_slots``);
+    reobs_a: the re-observation offset a (default ``config.canny_high``)."""
     n = cands.rho.size
     rng = np.random.default_rng(seed)
     if n > config.max_edges:  # more candidates than slots: a seeded subset (fixed shapes)
@@ -286,7 +287,7 @@ def select(
         cands = Candidates(cands.uv[:, keep], cands.rho[keep], cands.grad[:, keep],
                            cands.mag[keep])
         return keep[select(cands, config, T_prior=T_prior, intr=intr, width=width,
-                           height=height, seed=seed)]
+                           height=height, seed=seed, reobs_a=reobs_a)]
     if config.selection in ("all", "random") or n == 0:
         k = min(n, config.edge_slots)
         return np.arange(n) if k == n else np.sort(rng.choice(n, k, replace=False))
@@ -309,7 +310,8 @@ def select(
         points, ranges, T_prior.astype(np.float32), np.asarray(intr, np.float32),
         np.uint32(seed & 0xFFFFFFFF), width=width, height=height, mode=config.selection,
         num_edges=config.num_edges, max_per_cell=config.max_per_cell,
-        lam=float(config.logdet_lambda), a=float(config.canny_high), samples=samples,
+        lam=float(config.logdet_lambda),
+        a=float(config.canny_high if reobs_a is None else reobs_a), samples=samples,
     )
     idx, taken = jax.device_get((idx, taken))
     return np.sort(order[idx[taken]])
@@ -322,16 +324,18 @@ def pack_edges(cands: Candidates, idx: np.ndarray, size: int) -> KeyframeEdges:
     rho = np.ones(size, np.float32)
     grad = np.zeros((2, size), np.float32)
     valid = np.zeros(size, bool)
+    mag = np.zeros(size, np.float32)
     uv[:, :n] = cands.uv[:, idx]
     rho[:n] = cands.rho[idx]
     grad[:, :n] = cands.grad[:, idx]
     valid[:n] = True
-    return KeyframeEdges(uv=uv, rho=rho, grad=grad, valid=valid)
+    mag[:n] = cands.mag[idx]
+    return KeyframeEdges(uv=uv, rho=rho, grad=grad, valid=valid, mag=mag)
 
 
 def keyframe_edges(
     frame: Frame, config: Config, *, seed: int, T_prior: np.ndarray | None = None,
-    intr: Intrinsics | None = None,
+    intr: Intrinsics | None = None, reobs_a: float | None = None,
 ) -> KeyframeEdges:
     """The keyframe's tracked edges in fixed slots (numpy): ``num_edges`` for the selecting
     modes; for ``all``, the next power of two (>= 1024, <= ``max_edges``) above the number
@@ -339,14 +343,16 @@ def keyframe_edges(
     (a handful of sizes, each compiled once).
 
     T_prior (4, 4): the expected T_next_kf (identity when unknown); intr is needed for the
-    information-based modes (spg, greedy).
+    information-based modes (spg, greedy); reobs_a: the re-observation sigmoid's offset a
+    (default ``config.canny_high``, the paper's; ``params.Params.reobs_a`` when learnt).
     """
     cands = candidates(frame, config)
     T_prior = np.eye(4) if T_prior is None else T_prior
     if intr is None and config.selection in ("spg", "greedy"):
         raise ValueError(f"selection={config.selection} needs the camera intrinsics")
     h, w = frame.shape
-    idx = select(cands, config, T_prior=T_prior, intr=intr, width=w, height=h, seed=seed)
+    idx = select(cands, config, T_prior=T_prior, intr=intr, width=w, height=h, seed=seed,
+                 reobs_a=reobs_a)
     slots = config.edge_slots
     if config.selection == "all":
         slots = min(config.max_edges, max(1024, 1 << max(idx.size - 1, 0).bit_length()))

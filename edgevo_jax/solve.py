@@ -21,30 +21,35 @@ from .config import Config
 from .geometry import retract_left
 from .interp import EdgeMap
 from .residuals import consistency_dots_at_level, residual_jacobian_grad, warp
-from .robust import huber_cost, huber_weights
+from .robust import EdgeWeighting, edge_weights, huber_cost, huber_weights
 
 
 class KeyframeEdges(NamedTuple):
     """Fixed-size edge set of a keyframe (struct of arrays): uv (2, K) level-0 pixels,
     rho (K,) inverse depth (1/m), grad (2, K) normalised image gradient, valid (K,) bool
-    (padding slots are False and hold rho = 1)."""
+    (padding slots are False and hold rho = 1), and mag (K,) the gradient magnitude (0 in
+    padding slots; None when not known: only the per-edge weighting model reads it)."""
 
     uv: jnp.ndarray
     rho: jnp.ndarray
     grad: jnp.ndarray
     valid: jnp.ndarray
+    mag: jnp.ndarray | None = None
 
 
 class SolveKnobs(NamedTuple):
     """The numeric settings of the solve as arrays (a pytree), so that one compiled program
     serves many configurations (``batch.py`` vmaps over them): per level huber_delta (L,) and
-    max_residual (L,) in that level's pixels, iterations (L,) int32; eta () and step_tol ()."""
+    max_residual (L,) in that level's pixels, iterations (L,) int32; eta () and step_tol ().
+    ``weighting``: the learnable per-edge weighting model (``robust.EdgeWeighting``, from
+    ``params.solve_knobs_of``), or None (the plain tracker; a None compiles without it)."""
 
     huber_delta: jnp.ndarray
     max_residual: jnp.ndarray
     eta: jnp.ndarray
     iterations: jnp.ndarray
     step_tol: jnp.ndarray
+    weighting: EdgeWeighting | None = None
 
 
 def solve_knobs(config: Config) -> SolveKnobs:
@@ -121,7 +126,12 @@ def normal_equations(
     consistent = consistency_dots_at_level(kf.grad, edge_map, uv_c, r, grad, level) >= knobs.eta
     delta, gate = knobs.huber_delta[level], knobs.max_residual[level]
     mask = kf.valid & ok & (r <= gate) & consistent
-    return robust_system(r, J, mask, kf.valid, delta, gate)
+    if knobs.weighting is None:
+        return robust_system(r, J, mask, kf.valid, delta, gate)
+    if kf.mag is None:
+        raise ValueError("the per-edge weighting model needs KeyframeEdges.mag")
+    weight, slope = edge_weights(knobs.weighting, kf.mag, kf.rho, r, gate, level)
+    return robust_system(r, J, mask, kf.valid, delta, gate, weight=weight, weight_slope=slope)
 
 
 def robust_system(

@@ -21,6 +21,7 @@ from .geometry import inverse_np, orthonormalise_np, scale_motion_np
 from .interp import stack_edge_maps
 from .keyframes import keyframe_reason
 from .local_map import LocalMap
+from .params import Params, solve_knobs_of
 from .preprocess import Frame, preprocess
 from .selection import keyframe_edges
 from .solve import KeyframeEdges, TrackResult, solve_knobs, solve_structure, track
@@ -99,13 +100,18 @@ class Odometry:
     >>> result = odo.track(rgb, depth_m, timestamp)  # doctest: +SKIP
 
     ``initial_pose`` (4, 4) is T_world_cam of the first frame (identity by default).
+    ``params``: learnt ``params.Params`` (e.g. from ``scripts/learn_weights.py``) in place of
+    the config's numbers: Huber radii, consistency threshold and the per-edge weighting
+    model drive the solve (``params.solve_knobs_of``), ``reobs_a`` the edge selection. None
+    or ``Params.default(config)`` give the plain tracker's trajectory, bit for bit.
     ``track`` is synchronous. ``submit`` + ``complete`` split it: ``submit`` dispatches the
     device solve and returns at once, so the caller can prepare the next frame on another
     core before ``complete`` reads the result back (one frame in flight at a time).
     """
 
     def __init__(
-        self, config: Config, intrinsics: Intrinsics, initial_pose: np.ndarray | None = None
+        self, config: Config, intrinsics: Intrinsics, initial_pose: np.ndarray | None = None,
+        params: Params | None = None,
     ) -> None:
         self.config = config
         self.intrinsics = Intrinsics(*(float(x) for x in intrinsics)).validate()
@@ -124,6 +130,11 @@ class Odometry:
         # the solve's numbers, passed as (traced) arrays, and its static part: configurations
         # that differ in numbers only share one compiled program
         self.knobs, self._static = solve_knobs(config), solve_structure(config)
+        self.params = params
+        self._reobs_a: float | None = None  # the selection's offset a (None: the config's)
+        if params is not None:
+            self.knobs = solve_knobs_of(params, config)
+            self._reobs_a = float(np.asarray(params.reobs_a, np.float64))
         # the last two poses relative to the keyframe, A = T_(i-1)_kf and B = T_(i-2)_kf
         # (float32): the device predicts the next one from them (chunk.predict)
         self._rel: tuple[np.ndarray, np.ndarray] | None = None
@@ -392,7 +403,7 @@ class Odometry:
         # prior motion for the selection: constant velocity, T_next_kf = T_w_kf^-1 T_w_prev
         T_prior = inverse_np(pose) @ self._poses[-1] if self._poses else np.eye(4)
         edges = keyframe_edges(frame, self.config, seed=self.config.seed + self.num_keyframes,
-                               T_prior=T_prior, intr=self.intrinsics)
+                               T_prior=T_prior, intr=self.intrinsics, reobs_a=self._reobs_a)
         n = int(edges.valid.sum())
         if n < self.config.min_inliers:
             return None
