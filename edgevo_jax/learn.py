@@ -6,27 +6,43 @@ relative-pose losses.
 of the config's: Huber radius per level ``exp(log_huber[l])``, the gradient-consistency test
 made soft, sigmoid((g(p) . g(p') - eta) / tau) (``consistency="hard"`` keeps the plain
 tracker's g(p) . g(p') >= eta), and each inlier's Huber weight scaled by the per-edge
-weighting model (``params.edge_weight``). A soft-rejected fraction 1 - s of an edge adds that
+weighting model (``robust.edge_weights``). A soft-rejected fraction 1 - s of an edge adds that
 fraction of the gate's cost, as the plain tracker's cost does for a rejected edge.
+
+Two options make the cost smooth enough for exact implicit gradients (both off by default,
+which is the plain tracker's computation): ``interpolation="bicubic"`` reads the distance
+fields with a C1 interpolant (``interp.bicubic_with_grad``; bilinear has kinks at pixel
+boundaries), and ``refine=n`` adds n rounds at level 0 after the coarse-to-fine solve, each
+holding the hard decisions taken at its start (so that LM works on one smooth piece of the
+cost, not against the jumps of the nearest-edge test) for ``config.iterations[0]`` tries,
+a try being also kept when it shrinks the gradient without raising the cost beyond rounding
+(so it gets past where cost differences drown in rounding), and then taking them again.
 
 Two adjoints, one switch:
 
-- ``adjoint="unrolled"``: reverse mode through every LM try of every level (``lax.scan``
-  over ``Config.iterations``; ``checkpoint=True`` recomputes each try in the backward pass
-  instead of storing it). Exact derivative of what the forward pass computed, converged or
-  not; memory and time grow with the iteration count.
+- ``adjoint="unrolled"``: reverse mode through every LM try of every level and round
+  (``lax.scan``; ``checkpoint=True`` recomputes each try in the backward pass instead of
+  storing it). Exact derivative of what the forward pass computed, converged or not; memory
+  and time grow with the iteration count.
 - ``adjoint="implicit"``: the forward pass runs without gradients; at the final pose T* the
-  Gauss-Newton stationarity F(T*, theta) = J^T W r = 0 (tangent space, left twist) holds, and
-  the implicit function theorem gives dT*/dtheta = -(dF/dxi)^-1 dF/dtheta, with dF/dxi the
-  exact (autodiff) 6x6 derivative of F (``jax.custom_vjp``). Cost independent of the
-  iteration count; exact only at a converged pose, and blind to the coarse levels (the
-  converged pose does not depend on them) and to ``T_init``. With fewer than 6 inliers at
-  T* (no step was taken) the gradient is zero. Caveat: the cost is only piecewise smooth
-  (bilinear fields, nearest-edge consistency), and on real frames LM often ends on a kink
-  rather than at a stationary point (g^T H^-1 g not ~0); there the implicit gradient is an
-  approximation (on one converged bundled pair it differed from finite differences by 7e-3
-  relative, and the pose still moved with the coarse levels' radii). The unrolled adjoint
-  is the exact one.
+  stationarity F(T*, theta) = J^T W r = 0 (the cost's gradient in a left twist, with the
+  hard decisions of T*, or those the last round held) is assumed, and the implicit function
+  theorem gives dT*/dtheta = -(dF/dxi)^-1 dF/dtheta, with dF/dxi the exact (autodiff) 6x6
+  derivative of F (``jax.custom_vjp``). Cost independent of the iteration count; blind to
+  the coarse levels and to ``T_init`` (a stationary point of level 0 depends on neither).
+  With fewer than 6 inliers at T* (no step was taken) the gradient is zero.
+  It is exact when T* is a stationary point of the cost with the decisions that hold at T*
+  and the cost is smooth around it: ``newton_decrement(level_system(...)[0])`` at T* is then
+  ~0 (relative to the cost). The plain computation rarely gets there on real frames: LM
+  stops on a bilinear kink or against a jump of the consistency test (decrement ~0.2 for a
+  cost of ~60 on a bundled pair) and the implicit gradient is an approximation (there, 0.4 %
+  to several times off, depending on the parameter). With bicubic fields, ``refine=3`` and
+  float64 on bundled pairs the decrement falls to ~1e-25 and the implicit gradient equals
+  central differences to better than 1e-5 relative and the unrolled one to ~1e-11
+  (``tests/test_learn.py``); the parameters that only act on coarse levels
+  (``log_huber[1:]``, the level feature's weight: that feature is 0 at level 0) and
+  ``reobs_a`` then have no effect at all. The rounds can stop before the decisions settle
+  (frames far apart, few inliers): check the decrement.
 
 Hard decisions are constants in the backward pass, in both adjoints: the residual gate
 (r <= max_residual), visibility, the validity of edges, which keyframe and which edges were
@@ -52,14 +68,17 @@ import numpy as np
 from .camera import Intrinsics, unproject
 from .config import Config
 from .geometry import retract_left
-from .params import Params, edge_features, edge_weight
+from .interp import bicubic_with_grad
+from .params import Params, weighting_of
 from .preprocess import Frame
-from .residuals import consistency_dots_at_level, residual_and_jacobian, residual_jacobian_grad
+from .residuals import consistency_dots_at_level, point_jacobian, residual_jacobian_grad, warp
+from .robust import edge_weights
 from .selection import reobservation_probability
 from .solve import (
     KeyframeEdges,
     LevelSystem,
     TrackResult,
+    damped_step,
     lm_iteration,
     robust_system,
     track_result,
@@ -67,6 +86,20 @@ from .solve import (
 
 ADJOINTS = ("unrolled", "implicit")
 CONSISTENCY = ("soft", "hard")
+INTERPOLATIONS = ("bilinear", "bicubic")
+
+
+def _residuals(
+    field: jnp.ndarray, intr: Intrinsics, T: jaxlie.SE3, pts_k: jnp.ndarray, interpolation: str
+) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray]:
+    """``residuals.residual_jacobian_grad`` with the field read by ``interpolation``:
+    residuals (K,), Jacobian (6, K), validity (K,), warped pixels (2, K), field gradient
+    (2, K). "bilinear" is the plain tracker's own computation."""
+    if interpolation == "bilinear":
+        return residual_jacobian_grad(field, intr, T, pts_k)
+    uv_c, pts = warp(intr, T, pts_k)
+    r, grad, inside = bicubic_with_grad(field, uv_c)
+    return r, point_jacobian(intr, pts, grad), inside & (pts[2] > 1e-6), uv_c, grad
 
 
 class _EdgeData(NamedTuple):
@@ -79,6 +112,14 @@ class _EdgeData(NamedTuple):
     intr: Intrinsics  # level-0 intrinsics (arrays)
 
 
+class _Spec(NamedTuple):
+    """The static choices of the differentiable path (hashable)."""
+
+    config: Config
+    consistency: str
+    interpolation: str
+
+
 def _system(
     T: jaxlie.SE3,
     params: Params,
@@ -87,55 +128,71 @@ def _system(
     dots: jnp.ndarray,
     valid: jnp.ndarray,
     level: int,
-    config: Config,
-    consistency: str,
+    spec: _Spec,
 ) -> LevelSystem:
     """Normal equations at T with the hard decisions given: ``mask`` (gate, validity,
     visibility and, for ``consistency="hard"``, the consistency test) and ``dots``
     g(p) . g(p'). Everything else is a smooth function of T, params and data."""
-    r, J, _, _ = residual_and_jacobian(data.field, data.intr.at_level(level), T, data.pts_k)
+    config = spec.config
+    r, J, _, _, _ = _residuals(data.field, data.intr.at_level(level), T, data.pts_k,
+                               spec.interpolation)
 
-    def weight_of(r):
-        return edge_weight(params, edge_features(data.mag, data.rho, r, level, config))
-
-    # elementwise in r: the JVP with ones is each weight's own slope
-    weight, slope = jax.jvp(weight_of, (r,), (jnp.ones_like(r),))
+    weight, slope = edge_weights(weighting_of(params, config), data.mag, data.rho, r,
+                                 config.max_residual[level], level)
     reject = None
-    if consistency == "soft":
+    if spec.consistency == "soft":
         soft = jax.nn.sigmoid((dots - params.eta) / params.temperature)
         weight, slope, reject = weight * soft, slope * soft, 1.0 - soft
     system = robust_system(r, J, mask, valid, params.huber_delta(level),
                            config.max_residual[level], weight=weight, reject=reject,
                            weight_slope=slope)
-    if consistency == "soft":  # inliers as the plain tracker counts them
+    if spec.consistency == "soft":  # inliers as the plain tracker counts them
         system = system._replace(inliers=jnp.sum(mask & (dots >= params.eta)))
     return system
 
 
 def _decisions(
     T: jaxlie.SE3, params: Params, data: _EdgeData, kf: KeyframeEdges,
-    edge_map: jnp.ndarray, level: int, config: Config, consistency: str,
+    edge_map: jnp.ndarray, level: int, spec: _Spec,
 ) -> tuple[jnp.ndarray, jnp.ndarray]:
     """The hard decisions at T (as ``solve.normal_equations`` takes them): the inlier mask
     and g(p) . g(p') (K,) of the nearest edges p'."""
-    r, _, ok, uv_c, grad = residual_jacobian_grad(data.field, data.intr.at_level(level), T,
-                                                  data.pts_k)
+    r, _, ok, uv_c, grad = _residuals(data.field, data.intr.at_level(level), T, data.pts_k,
+                                      spec.interpolation)
     dots = consistency_dots_at_level(kf.grad, edge_map, uv_c, r, grad, level)
-    mask = kf.valid & ok & (r <= config.max_residual[level])
-    if consistency == "hard":
+    mask = kf.valid & ok & (r <= spec.config.max_residual[level])
+    if spec.consistency == "hard":
         mask = mask & (dots >= params.eta)
     return mask, dots
 
 
+def _lm_try(system_at, T: jaxlie.SE3, system: LevelSystem, lam: jnp.ndarray, settle: bool):
+    """``solve.lm_iteration``; with ``settle``, a step is also kept when it shrinks the
+    gradient without raising the cost beyond rounding (near a stationary point cost
+    differences drown in rounding while the gradient still says where to go)."""
+    if not settle:
+        return lm_iteration(system_at, T, system, lam)
+    xi = damped_step(system, lam)
+    T_new = retract_left(T, xi)
+    sys_new = system_at(T_new)
+    slack = 64 * jnp.finfo(system.cost.dtype).eps * (jnp.abs(system.cost) + 1.0)
+    better = (sys_new.cost < system.cost) | (
+        (sys_new.cost <= system.cost + slack) & (sys_new.g @ sys_new.g < system.g @ system.g))
+    T, system = jax.tree.map(lambda a, b: jnp.where(better, a, b), (T_new, sys_new), (T, system))
+    lam = jnp.clip(jnp.where(better, lam * 0.1, lam * 10.0), 1e-6, 1e4)
+    return T, system, lam, jnp.linalg.norm(xi)
+
+
 def _align(
-    T: jaxlie.SE3, system_at, iterations: int, step_tol: float, checkpoint: bool
+    T: jaxlie.SE3, system_at, iterations: int, step_tol: float, checkpoint: bool,
+    settle: bool = False,
 ) -> tuple[jaxlie.SE3, LevelSystem]:
     """``iterations`` LM tries (a scan: reverse-differentiable), frozen once a try is shorter
     than ``step_tol`` (what ``solve.align_level``'s while loop does by stopping)."""
 
     def body(carry, _):
         T, system, lam, active = carry
-        T_new, sys_new, lam_new, step = lm_iteration(system_at, T, system, lam)
+        T_new, sys_new, lam_new, step = _lm_try(system_at, T, system, lam, settle)
         T, system, lam = jax.tree.map(
             lambda a, b: jnp.where(active, a, b), (T_new, sys_new, lam_new), (T, system, lam)
         )
@@ -147,6 +204,33 @@ def _align(
     init = (T, system, jnp.asarray(1e-4, system.H.dtype), jnp.asarray(True))
     (T, system, _, _), _ = jax.lax.scan(body, init, None, length=iterations)
     return T, system
+
+
+#: Newton steps (exact Hessian) that end each refinement round: LM's test on the cost stops
+#: where cost differences drown in rounding (pose ~1e-10 off in float64); two Newton steps on
+#: the gradient take it to the stationary point's rounding level.
+NEWTON_STEPS = 2
+
+
+def _newton_step(
+    T: jaxlie.SE3, system: LevelSystem, system_at
+) -> tuple[jaxlie.SE3, LevelSystem]:
+    """One Newton step on the gradient g of a smooth cost (``system_at``, hard decisions
+    held), xi = -(dg/dxi)^-1 g with the exact (autodiff) Hessian; kept only when it shrinks
+    |g| without raising the cost beyond rounding, and is finite."""
+
+    def g_of(xi):
+        return system_at(retract_left(T, xi)).g
+
+    A = jax.jacfwd(g_of)(jnp.zeros(6, system.g.dtype))
+    xi = -jnp.linalg.solve(A, system.g)
+    T_new = retract_left(T, jnp.where(jnp.all(jnp.isfinite(xi)), xi, 0.0))
+    sys_new = system_at(T_new)
+    slack = 64 * jnp.finfo(system.cost.dtype).eps * (jnp.abs(system.cost) + 1.0)
+    keep = (jnp.all(jnp.isfinite(xi)) & (system.inliers >= 6)
+            & (jnp.sum(sys_new.g**2) < jnp.sum(system.g**2))
+            & (sys_new.cost <= system.cost + slack))
+    return jax.tree.map(lambda a, b: jnp.where(keep, a, b), (T_new, sys_new), (T, system))
 
 
 def _tangent_cotangent(T: jaxlie.SE3, ct: jnp.ndarray) -> jnp.ndarray:
@@ -190,24 +274,39 @@ def _implicit_bwd(stationarity, res, ct):
 _implicit_pose.defvjp(_implicit_fwd, _implicit_bwd)
 
 
-def _level0_stationarity(spec, T, inputs):
-    """F(T) = J^T W r at level 0 with the decisions in ``inputs`` fixed; aux: inliers."""
-    config, consistency = spec
-    params, data, mask_f, dots, valid_f = inputs
-    mask, valid = mask_f > 0.5, valid_f > 0.5
-    system = _system(T, params, data, mask, dots, valid, 0, config, consistency)
-    return system.g, system.inliers
-
-
 class _Stationarity(NamedTuple):
-    """Hashable callable for custom_vjp's non-differentiable argument."""
+    """F(T) = J^T W r at level 0 with the decisions in ``inputs`` fixed (aux: inliers); a
+    hashable callable for custom_vjp's non-differentiable argument."""
 
-    config: Config
-    consistency: str
+    spec: _Spec
 
     def __call__(self, T, inputs):
-        """F(T, inputs) and the inlier count (see ``_level0_stationarity``)."""
-        return _level0_stationarity((self.config, self.consistency), T, inputs)
+        """F(T, inputs) (6,) and the inlier count."""
+        params, data, mask_f, dots, valid_f = inputs
+        system = _system(T, params, data, mask_f > 0.5, dots, valid_f > 0.5, 0, self.spec)
+        return system.g, system.inliers
+
+
+def _check_options(adjoint: str, consistency: str, interpolation: str) -> None:
+    for name, value, allowed in (("adjoint", adjoint, ADJOINTS),
+                                 ("consistency", consistency, CONSISTENCY),
+                                 ("interpolation", interpolation, INTERPOLATIONS)):
+        if value not in allowed:
+            raise ValueError(f"{name} must be one of {allowed}, got {value!r}")
+
+
+def _data_at(level: int, kf: KeyframeEdges, dist, intr: Intrinsics, mag) -> _EdgeData:
+    return _EdgeData(unproject(intr, kf.uv, kf.rho), kf.rho, mag, dist[level], intr)
+
+
+def _as_arrays(kf: KeyframeEdges, dist, intr, mag):
+    """Intrinsics as arrays of the fields' dtype, the magnitudes (K,) (``kf.mag`` when None,
+    zeros when that is None too)."""
+    dtype = dist[0].dtype
+    intr = Intrinsics(*(jnp.asarray(v, dtype) for v in intr))
+    mag = kf.mag if mag is None else mag
+    mag = jnp.zeros_like(kf.rho) if mag is None else jnp.asarray(mag, kf.rho.dtype)
+    return intr, mag
 
 
 def track_differentiable(
@@ -222,54 +321,111 @@ def track_differentiable(
     mag: jnp.ndarray | None = None,
     adjoint: str = "unrolled",
     consistency: str = "soft",
+    interpolation: str = "bilinear",
+    refine: int = 0,
     checkpoint: bool = False,
 ) -> TrackResult:
     """``solve.track`` with learnable ``params``, differentiable w.r.t. them (and the float
     inputs) through ``adjoint`` ("unrolled" or "implicit", see the module docstring).
 
-    mag (K,): gradient magnitude of each keyframe edge for the weighting model (zeros when
-    None; ``edge_magnitudes`` looks them up). ``consistency="hard"`` with
-    ``Params.default(config)`` runs the plain tracker's computation (same tries, same
-    decisions). Jit with ``config``, ``adjoint``, ``consistency``, ``checkpoint`` static.
+    mag (K,): gradient magnitude of each keyframe edge for the weighting model (default
+    ``kf.mag``, zeros when that is None; ``edge_magnitudes`` looks them up).
+    ``interpolation``: how the distance fields are read, "bilinear" (the plain tracker's) or
+    "bicubic" (``interp.bicubic_with_grad``: C1, the cost has a gradient everywhere).
+    ``refine``: rounds of level-0 refinement after the coarse-to-fine solve; each holds the
+    hard decisions taken at its start for ``config.iterations[0]`` LM tries (a step is also
+    kept when it shrinks the gradient without raising the cost beyond rounding), then takes
+    them again (module docstring: with "bicubic", float64 and a few rounds the pose is a
+    stationary point of its own decisions, where the implicit adjoint is exact).
+    ``consistency="hard"`` with ``Params.default(config)``, bilinear and no refinement runs
+    the plain tracker's computation (same tries, same decisions). Jit with ``config``,
+    ``adjoint``, ``consistency``, ``interpolation``, ``refine``, ``checkpoint`` static.
     """
-    if adjoint not in ADJOINTS:
-        raise ValueError(f"adjoint must be one of {ADJOINTS}, got {adjoint!r}")
-    if consistency not in CONSISTENCY:
-        raise ValueError(f"consistency must be one of {CONSISTENCY}, got {consistency!r}")
-    dtype = dist[0].dtype
-    intr = Intrinsics(*(jnp.asarray(v, dtype) for v in intr))
-    mag = jnp.zeros_like(kf.rho) if mag is None else jnp.asarray(mag, kf.rho.dtype)
+    _check_options(adjoint, consistency, interpolation)
+    spec = _Spec(config, consistency, interpolation)
+    intr, mag = _as_arrays(kf, dist, intr, mag)
     if adjoint == "implicit":  # the forward pass without gradients
         inputs = jax.lax.stop_gradient((kf, dist, T_init, intr, params, mag))
         kf_s, dist_s, T_init_s, intr_s, params_s, mag_s = inputs
     else:
         kf_s, dist_s, T_init_s, intr_s, params_s, mag_s = kf, dist, T_init, intr, params, mag
 
-    def data_at(level, kf, dist, intr, mag):
-        pts_k = unproject(intr, kf.uv, kf.rho)
-        return _EdgeData(pts_k, kf.rho, mag, dist[level], intr)
-
     T = jaxlie.SE3.from_matrix(T_init_s)
     for level in reversed(range(config.num_levels)):
-        data = data_at(level, kf_s, dist_s, intr_s, mag_s)
+        data = _data_at(level, kf_s, dist_s, intr_s, mag_s)
 
         def system_at(T, data=data, level=level):
-            mask, dots = _decisions(T, params_s, data, kf_s, edge_map, level, config,
-                                    consistency)
-            return _system(T, params_s, data, mask, dots, kf_s.valid, level, config,
-                           consistency)
+            mask, dots = _decisions(T, params_s, data, kf_s, edge_map, level, spec)
+            return _system(T, params_s, data, mask, dots, kf_s.valid, level, spec)
 
         T, final = _align(T, system_at, config.iterations[level], config.step_tol, checkpoint)
 
-    data = data_at(0, kf, dist, intr, mag)
-    if adjoint == "implicit":
-        mask, dots = _decisions(T, params_s, data_at(0, kf_s, dist_s, intr_s, mag_s), kf_s,
-                                edge_map, 0, config, consistency)
+    # the hard decisions of level 0 at the solve's pose; each refinement round holds them
+    # for config.iterations[0] LM tries and NEWTON_STEPS Newton steps, then takes them
+    # again at the pose it reached (the last round's stay, for the implicit adjoint)
+    data_s = _data_at(0, kf_s, dist_s, intr_s, mag_s)
+    mask, dots = _decisions(T, params_s, data_s, kf_s, edge_map, 0, spec)
+
+    def refine_round(T, mask, dots):
+        def system_at(T):
+            return _system(T, params_s, data_s, mask, dots, kf_s.valid, 0, spec)
+
+        return _align(T, system_at, config.iterations[0], config.step_tol, checkpoint,
+                      settle=True)
+
+    def next_round(carry, _):  # a round; then the decisions at its pose, for the next one
+        T, mask, dots, _held = carry
+        T, final = refine_round(T, mask, dots)
+        decisions = _decisions(T, params_s, data_s, kf_s, edge_map, 0, spec)
+        return (T, *decisions, (mask, dots, final)), None
+
+    if refine > 0:
+        (T, _, _, (mask, dots, final)), _ = jax.lax.scan(
+            next_round, (T, mask, dots, (mask, dots, final)), None, length=refine)
+
+    data = _data_at(0, kf, dist, intr, mag)
+    if adjoint == "implicit":  # the stationarity of the decisions at (or held to) T
         f = data.pts_k.dtype
         inputs = (params, data, mask.astype(f), dots, kf.valid.astype(f))
-        T = jaxlie.SE3(_implicit_pose(_Stationarity(config, consistency), T.wxyz_xyz, inputs))
-        final = _system(T, params, data, mask, dots, kf.valid, 0, config, consistency)
+        T = jaxlie.SE3(_implicit_pose(_Stationarity(spec), T.wxyz_xyz, inputs))
+        final = _system(T, params, data, mask, dots, kf.valid, 0, spec)
     return track_result(T, final, data.pts_k, kf, dist[0].shape, intr)
+
+
+def level_system(
+    kf: KeyframeEdges,
+    dist: tuple[jnp.ndarray, ...],
+    edge_map: jnp.ndarray,
+    T_c_k: jnp.ndarray,
+    intr: Intrinsics,
+    params: Params,
+    config: Config,
+    *,
+    level: int = 0,
+    mag: jnp.ndarray | None = None,
+    consistency: str = "soft",
+    interpolation: str = "bilinear",
+) -> tuple[LevelSystem, jnp.ndarray]:
+    """What ``track_differentiable``'s LM sees at pose T_c_k (4, 4) on ``level``: the normal
+    equations (H = J^T W J, g = J^T W r = the gradient of the robust cost in a left twist,
+    the cost, inliers, residuals, the mask of the hard decisions taken at T_c_k) and
+    g(p) . g(p') (K,) of the nearest edges (what the consistency test reads). The hard
+    decisions of a pose are ``(system.mask, dots)``; ``newton_decrement(system)`` says how
+    far from stationary it is."""
+    _check_options("unrolled", consistency, interpolation)
+    spec = _Spec(config, consistency, interpolation)
+    intr, mag = _as_arrays(kf, dist, intr, mag)
+    data = _data_at(level, kf, dist, intr, mag)
+    T = jaxlie.SE3.from_matrix(T_c_k)
+    mask, dots = _decisions(T, params, data, kf, edge_map, level, spec)
+    return _system(T, params, data, mask, dots, kf.valid, level, spec), dots
+
+
+def newton_decrement(system: LevelSystem) -> jnp.ndarray:
+    """g^T H^-1 g of normal equations (Gauss-Newton H): twice the cost decrease that a full
+    Gauss-Newton step predicts; ~0 (relative to the cost) at a stationary point."""
+    H = system.H + 1e-12 * (jnp.trace(system.H) + 1.0) * jnp.eye(6, dtype=system.H.dtype)
+    return system.g @ jnp.linalg.solve(H, system.g)
 
 
 def edge_magnitudes(frame: Frame, kf: KeyframeEdges) -> np.ndarray:
@@ -328,3 +484,4 @@ def pose_loss(T_est: jnp.ndarray, T_gt: jnp.ndarray, *, rot_weight: float = 1.0)
     R, t = _relative(T_est, T_gt)
     rot = jnp.sum((R - jnp.eye(3, dtype=R.dtype)) ** 2) / 2.0
     return jnp.sum(t * t) + rot_weight**2 * rot
+

@@ -18,6 +18,8 @@ from edgevo_jax.geometry import inverse_np
 from edgevo_jax.io import poses7_to_matrices
 from edgevo_jax.learn import (
     edge_magnitudes,
+    level_system,
+    newton_decrement,
     pose_loss,
     relative_pose_error,
     rpe_loss,
@@ -132,6 +134,62 @@ def test_unrolled_gradients_equal_finite_differences(clip):
     for name, g, f in zip(NAMES, grad, fd, strict=True):
         if name != "reobs_a":
             assert abs(g - f) <= 1e-4 * abs(f) and f != 0.0, (name, g, f)
+
+
+#: level 0 converged: 20 LM tries per round, 3 refinement rounds, no early stop
+CONVERGED = CONFIG.replace(iterations=(20, 5, 5), step_tol=0.0)
+#: parameters that do not enter level 0: the coarse levels' Huber radii, the weight of the
+#: level feature (0 at level 0) and reobs_a (selection only)
+NOT_AT_LEVEL0 = ("log_huber1", "log_huber2", "w_level", "reobs_a")
+
+
+@pytest.mark.slow
+def test_implicit_gradients_are_exact_at_a_converged_pose(clip):
+    """Bicubic fields, refinement rounds, float64, pair (0, 2): the pose ends at a stationary
+    point of its own hard decisions (Newton decrement ~1e-25; the plain bilinear LM stops at
+    ~0.2); there the implicit gradient equals central differences to 1e-4 relative for every
+    parameter that enters level 0, with the decisions (gate, visibility, nearest edges) the
+    same at every FD pose; the others have zero gradient and FD (to rounding); implicit =
+    unrolled."""
+    seq, config = clip[0], CONVERGED
+    with jax.enable_x64(True):
+        params = trained_like(config)
+        kf, dist, ng, mag, T_gt = problem(clip, 2, jnp.float64)
+
+        def pose(v, adjoint):
+            return track_differentiable(kf, dist, ng, jnp.eye(4), seq.intrinsics,
+                                        unflatten(v, params), config, mag=mag, adjoint=adjoint,
+                                        interpolation="bicubic", refine=3).T_c_k
+
+        @jax.jit
+        def forward(v):
+            T = pose(v, "implicit")  # (the forward pass is the same for both adjoints)
+            system, dots = level_system(kf, dist, ng, T, seq.intrinsics, unflatten(v, params),
+                                        config, mag=mag, interpolation="bicubic")
+            return pose_loss(T, T_gt), system.mask, dots, newton_decrement(system), system.cost
+
+        v = flatten(params)
+        _, mask, dots, decrement, cost = forward(v)
+        assert float(decrement) < 1e-20 * float(cost), (decrement, cost)
+        g_implicit = np.asarray(jax.jit(jax.grad(lambda v: pose_loss(pose(v, "implicit"),
+                                                                     T_gt)))(v))
+        g_unrolled = np.asarray(jax.jit(jax.grad(lambda v: pose_loss(pose(v, "unrolled"),
+                                                                     T_gt)))(v))
+        eps = 1e-4
+        for i, name in enumerate(NAMES):
+            e = np.zeros(v.size)
+            e[i] = eps
+            (lp, mp, dp, decp, _), (lm, mm, dm, decm, _) = forward(v + e), forward(v - e)
+            for m, d, dec in ((mp, dp, decp), (mm, dm, decm)):  # the same smooth piece
+                assert np.array_equal(m, mask) and np.array_equal(d, dots), name
+                assert float(dec) < 1e-20 * float(cost), (name, dec)
+            fd = (float(lp) - float(lm)) / (2 * eps)
+            g = g_implicit[i]
+            if name in NOT_AT_LEVEL0:
+                assert g == 0.0 and abs(fd) < 1e-12, (name, g, fd)
+            else:
+                assert abs(g - fd) <= 1e-4 * abs(fd) and abs(fd) > 1e-8, (name, g, fd)
+        np.testing.assert_allclose(g_unrolled, g_implicit, rtol=1e-6, atol=1e-18)
 
 
 def test_checkpointed_unrolled_gradients_are_the_same(clip):
