@@ -1,5 +1,5 @@
 """Differentiable alignment (gradients of the pose w.r.t. ``Params``), two adjoints, and
-relative-pose losses.
+pose losses against ground truth (frame pairs, windows, chunks).
 
 ``track_differentiable`` runs the tracker's coarse-to-fine Levenberg-Marquardt
 (``solve.lm_iteration`` on ``solve.robust_system``) with the learnable parameters in place
@@ -53,6 +53,12 @@ of them leaves that function.
 
 ``Params.reobs_a`` only enters edge selection (a discrete greedy, not differentiated); its
 effect on the selection's soft scores is ``selection_scores``.
+
+Losses (differentiable, safe at zero error): ``rpe_loss`` / ``pose_loss`` of one relative
+pose; ``window_rpe_loss``, the mean RPE of the motions between frames i and i + d of a window
+(``track_window`` tracks a window against a keyframe as the tracker does, from the
+constant-velocity prediction); ``ate_loss``, the ATE of a chunk after rigid alignment, equal
+to TUM's ``evaluate_ate`` (``metrics.ate``).
 """
 
 from __future__ import annotations
@@ -66,6 +72,7 @@ import jaxlie
 import numpy as np
 
 from .camera import Intrinsics, unproject
+from .chunk import predict
 from .config import Config
 from .geometry import retract_left
 from .interp import bicubic_with_grad
@@ -428,6 +435,36 @@ def newton_decrement(system: LevelSystem) -> jnp.ndarray:
     return system.g @ jnp.linalg.solve(H, system.g)
 
 
+def track_window(
+    kf: KeyframeEdges,
+    dist: tuple[jnp.ndarray, ...],
+    edge_map: jnp.ndarray,
+    A: jnp.ndarray,
+    B: jnp.ndarray,
+    intr: Intrinsics,
+    params: Params,
+    config: Config,
+    **options,
+) -> TrackResult:
+    """``track_differentiable`` over a window of N frames in order against one keyframe, each
+    frame starting from the constant-velocity prediction of the two before it
+    (``chunk.predict``; A = T_(i-1)_kf, B = T_(i-2)_kf (4, 4) for the first frame): the scan
+    tracker's loop (``chunk.track_chunk``) with learnable params. dist holds one
+    (N, H / 2**l, W / 2**l) array per level, edge_map (N, H, W) arrays; ``options`` are
+    ``track_differentiable``'s keywords. Returns the N TrackResults stacked on a leading
+    axis. With the unrolled adjoint the gradient also flows through the predictions; with
+    the implicit one it does not (a converged pose does not depend on its start)."""
+
+    def step(carry, frame):
+        a, b = carry
+        res = track_differentiable(kf, frame[0], frame[1], predict(a, b), intr, params,
+                                   config, **options)
+        return (res.T_c_k, a), res
+
+    _, out = jax.lax.scan(step, (A, B), (tuple(dist), edge_map))
+    return out
+
+
 def edge_magnitudes(frame: Frame, kf: KeyframeEdges) -> np.ndarray:
     """Gradient magnitude (K,) of each keyframe edge, looked up in the frame the edges come
     from by pixel (0 for padding slots); host side, numpy."""
@@ -484,4 +521,84 @@ def pose_loss(T_est: jnp.ndarray, T_gt: jnp.ndarray, *, rot_weight: float = 1.0)
     R, t = _relative(T_est, T_gt)
     rot = jnp.sum((R - jnp.eye(3, dtype=R.dtype)) ** 2) / 2.0
     return jnp.sum(t * t) + rot_weight**2 * rot
+
+def _rigid_inverse(T: jnp.ndarray) -> jnp.ndarray:
+    """Inverse of rigid transforms (..., 4, 4)."""
+    R, t = T[..., :3, :3], T[..., :3, 3]
+    Rt = jnp.swapaxes(R, -1, -2)
+    top = jnp.concatenate([Rt, -(Rt @ t[..., None])], axis=-1)
+    return jnp.concatenate([top, T[..., 3:, :]], axis=-2)
+
+
+def window_rpe_loss(
+    T_est: jnp.ndarray,
+    T_gt: jnp.ndarray,
+    *,
+    rot_weight: float = 1.0,
+    deltas: tuple[int, ...] = (1,),
+    valid: jnp.ndarray | None = None,
+) -> jnp.ndarray:
+    """Relative-pose error over a window of N poses: the mean ``rpe_loss`` (translation m +
+    rot_weight * rotation rad) of the motions between frames i and i + d, d in ``deltas``
+    (frames, static), estimated against true.
+
+    T_est, T_gt (N, 4, 4): each frame's pose in one fixed frame, T_ref_cam (world poses, or
+    inv(T_c_k) of frames tracked against a keyframe); the motion i -> j is P_i^-1 P_j, as
+    TUM's RPE takes it (``metrics.rpe``, here per pair and not per second). ``valid`` (N,)
+    bool: frames to use (a pair counts when both are valid; 0 when none does)."""
+    n = T_est.shape[0]
+    pairs = [(i, i + d) for d in deltas for i in range(n - d)]
+    if not pairs:
+        raise ValueError(f"a window of {n} poses has no pair {deltas} frames apart")
+    i, j = (jnp.asarray(x) for x in zip(*pairs, strict=True))
+    inv_est, inv_gt = _rigid_inverse(T_est), _rigid_inverse(T_gt)
+    rel_est, rel_gt = inv_est[i] @ T_est[j], inv_gt[i] @ T_gt[j]
+    losses = jax.vmap(partial(rpe_loss, rot_weight=rot_weight))(rel_est, rel_gt)
+    if valid is None:
+        return jnp.mean(losses)
+    w = (valid[i] & valid[j]).astype(losses.dtype)
+    return jnp.sum(w * losses) / jnp.maximum(jnp.sum(w), 1.0)
+
+
+def rigid_alignment(
+    model: jnp.ndarray, data: jnp.ndarray, weights: jnp.ndarray | None = None
+) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """R (3, 3), t (3,) minimising sum_i w_i |R m_i + t - d_i|^2 over rotations (no scale)
+    for points model, data (N, 3): Horn / Umeyama through the SVD of the cross-covariance,
+    with TUM's reflection fix (``metrics.horn_align``, in JAX). Not meant to be
+    differentiated (singular vectors are not smooth where singular values meet):
+    ``ate_loss`` holds it constant."""
+    w = jnp.ones(model.shape[0], model.dtype) if weights is None else weights.astype(model.dtype)
+    total = jnp.maximum(jnp.sum(w), 1e-30)
+    mu_m = (w @ model) / total
+    mu_d = (w @ data) / total
+    cross = (data - mu_d).T @ ((model - mu_m) * w[:, None])  # sum_i w_i d_i m_i^T
+    u, _, vh = jnp.linalg.svd(cross)
+    flip = jnp.linalg.det(u) * jnp.linalg.det(vh) < 0
+    s = jnp.diag(jnp.array([1.0, 1.0, 1.0], model.dtype).at[2].set(jnp.where(flip, -1.0, 1.0)))
+    R = u @ s @ vh
+    return R, mu_d - R @ mu_m
+
+
+def ate_loss(
+    T_est: jnp.ndarray, T_gt: jnp.ndarray, *, valid: jnp.ndarray | None = None
+) -> jnp.ndarray:
+    """ATE of a chunk (m): the RMS position error after aligning the estimated positions
+    (translations of T_est (N, 4, 4), T_world_cam or any fixed frame) onto the true ones
+    (T_gt) by the best rigid motion (``rigid_alignment``, no scale), as TUM's
+    ``evaluate_ate`` (``metrics.ate``'s rmse) on the same, associated poses. ``valid`` (N,)
+    bool: poses to use (>= 3 needed for a unique alignment).
+
+    Differentiable with safe gradients: the alignment is held constant (stop_gradient),
+    which gives the exact gradient of the aligned sum of squares (the alignment minimises
+    it: by the envelope theorem its own change does not contribute), with no SVD derivative
+    (undefined where singular values meet, as for straight-line motion); the square root
+    has gradient 0 (not NaN) at 0."""
+    p, q = T_est[:, :3, 3], T_gt[:, :3, 3]
+    w = jnp.ones(p.shape[0], p.dtype) if valid is None else valid.astype(p.dtype)
+    R, t = rigid_alignment(*jax.lax.stop_gradient((p, q)), w)
+    err = p @ R.T + t - q
+    mse = jnp.sum(w * jnp.sum(err * err, axis=1)) / jnp.maximum(jnp.sum(w), 1.0)
+    pos = mse > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, mse, 1.0)), 0.0)
 

@@ -5,6 +5,8 @@ the relative-pose losses."""
 
 from __future__ import annotations
 
+from functools import partial
+
 import jax
 import jax.numpy as jnp
 import jaxlie
@@ -12,20 +14,27 @@ import numpy as np
 import pytest
 
 from edgevo_jax import Config
+from edgevo_jax.chunk import predict
 from edgevo_jax.cli import BUNDLED_CLIP
 from edgevo_jax.datasets import groundtruth_pose_at, load_sequence
 from edgevo_jax.geometry import inverse_np
-from edgevo_jax.io import poses7_to_matrices
+from edgevo_jax.interp import stack_edge_maps
+from edgevo_jax.io import matrices_to_poses7, poses7_to_matrices
 from edgevo_jax.learn import (
+    ate_loss,
     edge_magnitudes,
     level_system,
     newton_decrement,
     pose_loss,
     relative_pose_error,
+    rigid_alignment,
     rpe_loss,
     selection_scores,
     track_differentiable,
+    track_window,
+    window_rpe_loss,
 )
+from edgevo_jax.metrics import ate
 from edgevo_jax.params import Params
 from edgevo_jax.preprocess import preprocess
 from edgevo_jax.selection import keyframe_edges
@@ -254,6 +263,116 @@ def test_losses():
             assert float(fn(same, same)) < 1e-12
             assert bool(jnp.all(jnp.isfinite(jax.grad(fn)(same, same))))
         assert float(jnp.max(jnp.abs(jax.grad(rpe_loss)(jnp.eye(4), jnp.eye(4))))) == 0.0
+
+
+def random_trajectory(rng: np.random.Generator, n: int, noise: float = 0.0) -> np.ndarray:
+    """(n, 4, 4) T_world_cam along a random smooth path (float64), optionally perturbed."""
+    twists = np.cumsum(rng.normal(scale=0.05, size=(n, 6)), axis=0)
+    twists += rng.normal(scale=noise, size=(n, 6))
+    return np.stack([np.asarray(jaxlie.SE3.exp(jnp.asarray(x)).as_matrix()) for x in twists])
+
+
+def test_ate_loss_is_tum_ate_and_its_gradient_is_exact():
+    """Equal to metrics.ate (TUM's evaluate_ate) on the same poses, the reflection case
+    included; zero with a zero gradient for a rigidly moved copy of the truth; gradient =
+    central differences (float64)."""
+    rng = np.random.default_rng(5)
+    with jax.enable_x64(True):
+        gt = random_trajectory(rng, 12)
+        est = random_trajectory(np.random.default_rng(5), 12, noise=0.02)
+        ts = np.arange(12) * 0.1
+        ref = ate(ts, matrices_to_poses7(gt), ts, matrices_to_poses7(est))["rmse"]
+        np.testing.assert_allclose(ate_loss(jnp.asarray(est), jnp.asarray(gt)), ref, rtol=1e-10)
+        # a mirror image: the best orthogonal map is a reflection, TUM's fix keeps a rotation
+        mirrored = est.copy()
+        mirrored[:, 0, 3] *= -1.0
+        R, _ = rigid_alignment(jnp.asarray(mirrored[:, :3, 3]), jnp.asarray(gt[:, :3, 3]))
+        assert abs(float(jnp.linalg.det(R)) - 1.0) < 1e-12
+        ref_m = ate(ts, matrices_to_poses7(gt), ts, matrices_to_poses7(mirrored))["rmse"]
+        np.testing.assert_allclose(ate_loss(jnp.asarray(mirrored), jnp.asarray(gt)), ref_m,
+                                   rtol=1e-10)
+        # masked poses are left out
+        valid = np.arange(12) % 3 != 0
+        ref_v = ate(ts[valid], matrices_to_poses7(gt[valid]), ts[valid],
+                    matrices_to_poses7(est[valid]))["rmse"]
+        np.testing.assert_allclose(ate_loss(jnp.asarray(est), jnp.asarray(gt),
+                                            valid=jnp.asarray(valid)), ref_v, rtol=1e-10)
+        # rigidly moved truth
+        G = np.asarray(jaxlie.SE3.exp(jnp.array([0.3, -1.0, 2.0, 0.5, -0.4, 2.5])).as_matrix())
+        moved = jnp.asarray(G @ gt)
+        assert float(ate_loss(moved, jnp.asarray(gt))) < 1e-12
+        # (an RMS, like a norm, has no gradient at 0: rounding picks one of norm <= 1)
+        g0 = jax.grad(ate_loss)(moved, jnp.asarray(gt))
+        assert bool(jnp.all(jnp.isfinite(g0))) and float(jnp.linalg.norm(g0)) <= 1.0 + 1e-9
+        none = jnp.zeros(12, bool)  # no pose: 0, and a zero gradient (not NaN)
+        assert float(ate_loss(moved, jnp.asarray(gt), valid=none)) == 0.0
+        g_none = jax.grad(ate_loss)(moved, jnp.asarray(gt), valid=none)
+        assert float(jnp.max(jnp.abs(g_none))) == 0.0
+        # gradient w.r.t. every estimated position, against central differences
+        grad = np.asarray(jax.grad(ate_loss)(jnp.asarray(est), jnp.asarray(gt)))[:, :3, 3]
+        steps = np.zeros((36, 12, 4, 4))
+        steps[np.arange(36), np.repeat(np.arange(12), 3), np.tile(np.arange(3), 12), 3] = 1e-6
+        losses = jax.jit(jax.vmap(ate_loss, in_axes=(0, None)))
+        fd = (losses(est + steps, gt) - losses(est - steps, gt)).reshape(12, 3) / 2e-6
+        np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-9)
+        assert np.all(grad != 0.0)
+
+
+def test_window_rpe_loss():
+    """The mean rpe_loss of the relative motions (i, i + d); blind to the frame the poses
+    are given in; zero for the truth; gradient = central differences (float64)."""
+    rng = np.random.default_rng(9)
+    with jax.enable_x64(True):
+        gt = jnp.asarray(random_trajectory(rng, 6))
+        est = jnp.asarray(random_trajectory(np.random.default_rng(9), 6, noise=0.01))
+        inv = np.linalg.inv
+        pair_loss = jax.jit(partial(rpe_loss, rot_weight=0.3))
+        expected = np.mean([float(pair_loss(inv(est[i]) @ est[i + d], inv(gt[i]) @ gt[i + d]))
+                            for d in (1, 2) for i in range(6 - d)])
+        value = window_rpe_loss(est, gt, rot_weight=0.3, deltas=(1, 2))
+        np.testing.assert_allclose(value, expected, rtol=1e-12)
+        G = jnp.asarray(jaxlie.SE3.exp(jnp.array([1.0, 0.2, -0.3, 0.4, 0.1, -2.0])).as_matrix())
+        np.testing.assert_allclose(window_rpe_loss(G @ est, gt, rot_weight=0.3, deltas=(1, 2)),
+                                   expected, rtol=1e-10)
+        assert float(window_rpe_loss(G @ gt, gt)) < 1e-7  # chordal angle of rounding: ~1e-8
+        valid = jnp.array([True, True, False, True, True, True])
+        pair_loss = jax.jit(rpe_loss)
+        expected_v = np.mean([float(pair_loss(inv(est[i]) @ est[i + 1], inv(gt[i]) @ gt[i + 1]))
+                              for i in (0, 3, 4)])
+        np.testing.assert_allclose(window_rpe_loss(est, gt, valid=valid), expected_v,
+                                   rtol=1e-12)
+
+        def of_twist(x):
+            return window_rpe_loss(est.at[3].set(jaxlie.SE3.exp(x).as_matrix() @ est[3]), gt,
+                                   rot_weight=0.3, deltas=(1, 2))
+
+        x0 = jnp.zeros(6)
+        grad = jax.jit(jax.grad(of_twist))(x0)
+        losses = jax.jit(jax.vmap(of_twist))
+        fd = (losses(jnp.eye(6) * 1e-6) - losses(-jnp.eye(6) * 1e-6)) / 2e-6
+        np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-9)
+        with pytest.raises(ValueError, match="no pair"):
+            window_rpe_loss(est[:2], gt[:2], deltas=(2,))
+
+
+def test_track_window_is_the_frame_by_frame_loop(clip):
+    """Frames 1, 2, 5 against keyframe 0, each from the constant-velocity prediction of the
+    two before it: the same poses as calling track_differentiable frame by frame."""
+    seq, edges, mag, frames, _ = clip
+    kf = jax.tree.map(jnp.asarray, edges)._replace(mag=jnp.asarray(mag))
+    ks = (1, 2, 5)
+    dist = tuple(jnp.asarray(np.stack([frames[k].dist[lv] for k in ks])) for lv in range(3))
+    em = jax.tree.map(jnp.asarray, stack_edge_maps([frames[k].edge_map for k in ks]))
+    params = trained_like(CONFIG)
+    eye = jnp.eye(4, dtype=jnp.float32)
+    out = jax.jit(track_window, static_argnames=("config", "consistency"))(
+        kf, dist, em, eye, eye, seq.intrinsics, params, CONFIG, consistency="hard")
+    a, b = eye, eye
+    for j in range(len(ks)):
+        one = _diff(kf, tuple(d[j] for d in dist), jax.tree.map(lambda x, j=j: x[j], em),
+                    predict(a, b), seq.intrinsics, params, CONFIG, consistency="hard")
+        np.testing.assert_allclose(out.T_c_k[j], one.T_c_k, atol=1e-6)
+        a, b = one.T_c_k, a
 
 
 def test_reobservation_offset_gradient_through_the_selection_scores():
