@@ -16,6 +16,7 @@ from edgevo_jax.datasets import (
     groundtruth_pose_at,
     load_sequence,
     read_file_list,
+    subsequence,
 )
 
 FR1_XYZ = "rgbd_dataset_freiburg1_xyz_first10"
@@ -324,3 +325,18 @@ def test_real_8bit_depth(shared_clip, tmp_path):
     cv2.imwrite(str(seq.depth_files[0]), (raw16 // 256).astype(np.uint8))
     with pytest.raises(ValueError, match="8-bit"):
         seq.load_frame(0)
+
+
+def test_subsequence_is_a_slice_of_the_frames():
+    from edgevo_jax.cli import BUNDLED_CLIP
+
+    seq = load_sequence(BUNDLED_CLIP)
+    part = subsequence(seq, 3, 7)
+    assert len(part) == 4 and part.name.endswith("_frames3-7")
+    np.testing.assert_array_equal(part.timestamps, seq.timestamps[3:7])
+    assert part.rgb_files == seq.rgb_files[3:7] and part.depth_files == seq.depth_files[3:7]
+    assert part.groundtruth is seq.groundtruth and part.intrinsics == seq.intrinsics
+    np.testing.assert_array_equal(part.load_frame(0)[0], seq.load_frame(3)[0])
+    assert len(subsequence(seq, 5, 100)) == len(seq) - 5  # clipped to the sequence
+    with pytest.raises(ValueError, match="no frames"):
+        subsequence(seq, 7, 7)

@@ -11,6 +11,7 @@ from edgevo_jax.datasets.tum import (
     groundtruth_pose_at,
     load_sequence,
     read_file_list,
+    subsequence,
 )
 
 __all__ = [
@@ -23,4 +24,5 @@ __all__ = [
     "pingpong",
     "pingpong_indices",
     "read_file_list",
+    "subsequence",
 ]

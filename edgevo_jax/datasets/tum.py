@@ -7,6 +7,7 @@ optional ``groundtruth.txt`` (``timestamp tx ty tz qx qy qz qw``, T_world_cam). 
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import functools
 import math
@@ -309,6 +310,20 @@ class TumSequence:
                             borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         depth = raw.astype(np.float32) / np.float32(self.depth_factor)
         return rgb, depth
+
+
+def subsequence(seq: TumSequence, start: int, stop: int) -> TumSequence:
+    """Frames ``start`` to ``stop`` - 1 of ``seq`` (its associated pairs; clipped to its
+    length) as a sequence of their own, with the same camera and ground truth (metrics
+    associate by time). Nothing is copied: the frames are read from the same files."""
+    n = len(seq)
+    start, stop = max(0, min(start, n)), max(0, min(stop, n))
+    if start >= stop:
+        raise ValueError(f"no frames in {start}:{stop} of {seq.name} ({n} frames)")
+    part = slice(start, stop)
+    return dataclasses.replace(
+        seq, name=f"{seq.name}_frames{start}-{stop}", timestamps=seq.timestamps[part],
+        rgb_files=seq.rgb_files[part], depth_files=seq.depth_files[part])
 
 
 def load_sequence(
