@@ -1,5 +1,6 @@
-"""scripts/learn_weights.py end to end on the bundled fr1/xyz clip: a few pairs, two adam
-steps; the JSON holds finite numbers and the loss-curve PNG is written."""
+"""scripts/learn_weights.py end to end on the bundled fr1/xyz clip: a few pairs (or windows),
+one or two adam steps; the JSON holds finite numbers (held-out ATE of full runs included) and
+the loss-curve PNG is written."""
 
 from __future__ import annotations
 
@@ -46,7 +47,12 @@ def test_learn_weights_runs_on_the_bundled_clip(tmp_path, capsys):
     assert rc == 0
     assert out_png.is_file() and out_png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     report = json.loads(out_json.read_text())
-    assert report["ate"].startswith("not measured")
+    a, b = report["settings"]["test_frames"]  # 5:9 (the clip has 9 frames)
+    for which in ("default", "fitted"):  # full tracker runs over the held-out frames only
+        run = report["ate"][which]
+        assert run["frames"] == b - a == 4 and run["ate_rmse_m"] > 0
+        assert "rpe_rmse_m_per_s" in run  # null here: 0.1 s of frames, RPE is over 1 s
+    assert report["settings"]["loss_kind"] == "pairs"
     assert report["pairs"]["train"] > 0 and report["pairs"]["test"] > 0
     assert len(report["loss_curve"]["minibatch"]) == 2
     assert len(report["loss_curve"]["all_training_pairs"]) == 3
@@ -56,9 +62,29 @@ def test_learn_weights_runs_on_the_bundled_clip(tmp_path, capsys):
             assert rpe["t_mean_mm"] >= 0 and rpe["r_mean_deg"] >= 0
     numbers = list(_numbers({k: report[k] for k in ("rpe", "loss_curve", "fitted_params",
                                                     "timing")}))
+    numbers += [report["ate"][w]["ate_rmse_m"] for w in ("default", "fitted")]
     assert numbers and all(x is not None and math.isfinite(x) for x in numbers)
     assert report["timing"]["value_and_grad_warm_s"] > 0
     assert "value_and_grad over 4 pairs" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_learn_weights_window_loss(tmp_path, capsys):
+    """--loss window: windows of 3 frames tracked against a keyframe; finite losses."""
+    out_json = tmp_path / "log.json"
+    rc = _load_script().main([
+        str(BUNDLED_CLIP), "--train", "0:5", "--test", "5:10", "--gaps", "1",
+        "--loss", "window", "--window", "3", "--num-edges", "64", "--steps", "1",
+        "--batch", "2", "--timing-reps", "1", "--no-ate",
+        "--out-json", str(out_json), "--out-png", str(tmp_path / "loss.png"),
+    ])
+    assert rc == 0
+    report = json.loads(out_json.read_text())
+    assert report["training_items"] == {"kind": "windows", "count": 2}
+    curve = report["loss_curve"]["all_training_windows"]
+    assert len(curve) == 2 and all(math.isfinite(x) and x > 0 for x in curve)
+    assert report["ate"] == {"skipped": "--no-ate"}
+    assert "value_and_grad over 2 windows" in capsys.readouterr().out
 
 
 def test_learn_weights_missing_sequence(tmp_path, capsys):
