@@ -5,7 +5,7 @@ Usage::
     python scripts/learn_weights.py [SEQ_DIR] [--train 0:100] [--test 100:200] [--gaps 1,2,3]
                                     [--loss pairs|window] [--window 8] [--num-edges 256]
                                     [--steps 60] [--batch 32] [--lr 3e-3] [--seed 0]
-                                    [--rot-weight 0.1] [--no-ate]
+                                    [--rot-weight 0.1] [--no-ate] [--control-runs 0]
                                     [--out-json docs/learning/learn_weights.json]
                                     [--out-png docs/learning/loss.png]
 
@@ -43,7 +43,9 @@ translation error in mm and rotation error in deg over the held-out pairs from t
 the training pairs; the ATE (rigid alignment, TUM's ``evaluate_ate``) and the RPE per second
 (``metrics.rpe``) of full tracker runs (``runner.run_sequence`` with the same config, the
 plain tracker with its hard consistency test) over the held-out frames only, with the
-default and with the fitted Params (``--no-ate`` skips them); the training loss per step
+default and with the fitted Params (``--no-ate`` skips them), and with ``--control-runs N``
+N more with the defaults moved along random directions by as much as the fit moved them (how
+much the ATE moves for a change of that size without fitting); the training loss per step
 (also plotted to ``--out-png``), the fitted Params (``fitted_params``: what ``edgevo run
 --params`` reads), and the time of a warm ``value_and_grad`` over one ``--batch``-item batch
 (median of a few calls, printed apart from the first call's compile time). Numbers are
@@ -120,6 +122,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--timing-reps", type=int, default=3, help="warm value_and_grad calls timed")
     p.add_argument("--no-ate", action="store_true",
                    help="skip the full tracker runs over the held-out frames")
+    p.add_argument("--control-runs", type=int, default=0,
+                   help="held-out runs with the defaults moved at random by the fit's step")
     p.add_argument("--out-json", type=Path, default=Path("docs/learning/learn_weights.json"))
     p.add_argument("--out-png", type=Path, default=Path("docs/learning/loss.png"))
     return p.parse_args(argv)
@@ -263,6 +267,27 @@ def run_ate(seq, frames: tuple[int, int], config: Config, params: Params | None)
             "rpe_rmse_deg_per_s": stats.get("rpe_rmse_deg_per_s"),
             "note": stats.get("ground_truth_note"),
             "run_s": time.perf_counter() - t0}
+
+
+def control_runs(seq, frames: tuple[int, int], config: Config, params0: Params,
+                 fitted: Params, n: int, seed: int) -> dict:
+    """How much the held-out ATE moves for a change of Params of the fit's size without any
+    fitting: ``n`` runs with the default Params moved along random directions (seeded by
+    ``seed``) by as much as the fit moved them (the same norm over the fitted leaves)."""
+    rng = np.random.default_rng(seed + 1)
+    moved = [name for name in Params._fields if name != "reobs_a"]
+    step = {k: np.asarray(getattr(fitted, k), np.float64) - np.asarray(getattr(params0, k))
+            for k in moved}
+    norm = float(np.sqrt(sum(np.sum(d * d) for d in step.values())))
+    runs = []
+    for _ in range(n):
+        direction = {k: rng.normal(size=np.shape(d)) for k, d in step.items()}
+        scale = norm / float(np.sqrt(sum(np.sum(d * d) for d in direction.values())))
+        p = params0._replace(**{k: jnp.asarray(np.asarray(getattr(params0, k)) + scale * d,
+                                               jnp.float32) for k, d in direction.items()})
+        runs.append(run_ate(seq, frames, config, p))
+    return {"step_norm": norm, "runs": runs,
+            "note": "default Params moved along random directions by the fit's step norm"}
 
 
 def save_plot(losses: list[float], full: list[float], path: Path, title: str,
@@ -424,6 +449,12 @@ def main(argv: list[str] | None = None) -> int:
               f"{_mm(d['ate_rmse_m'])} -> {_mm(f['ate_rmse_m'])} mm, RPE "
               f"{_mm(d['rpe_rmse_m_per_s'])} -> {_mm(f['rpe_rmse_m_per_s'])} mm/s  "
               f"[default -> fitted]")
+        if args.control_runs > 0:
+            ate["control"] = control_runs(seq, test_frames, config, params0, params,
+                                          args.control_runs, args.seed)
+            c = [r["ate_rmse_m"] for r in ate["control"]["runs"]]
+            print(f"control: default Params moved at random by the fit's step size, "
+                  f"{len(c)} runs: ATE {', '.join(_mm(x) for x in c)} mm")
 
     fitted: dict[str, Any] = params_to_dict(params)
     fitted["huber_delta"] = np.exp(np.asarray(params.log_huber)).tolist()

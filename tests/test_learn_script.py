@@ -42,6 +42,7 @@ def test_learn_weights_runs_on_the_bundled_clip(tmp_path, capsys):
     rc = _load_script().main([
         str(BUNDLED_CLIP), "--train", "0:5", "--test", "5:10", "--gaps", "1,2",
         "--num-edges", "64", "--steps", "2", "--batch", "4", "--timing-reps", "1",
+        "--control-runs", "1",
         "--out-json", str(out_json), "--out-png", str(out_png),
     ])
     assert rc == 0
@@ -52,6 +53,8 @@ def test_learn_weights_runs_on_the_bundled_clip(tmp_path, capsys):
         run = report["ate"][which]
         assert run["frames"] == b - a == 4 and run["ate_rmse_m"] > 0
         assert "rpe_rmse_m_per_s" in run  # null here: 0.1 s of frames, RPE is over 1 s
+    (control,) = report["ate"]["control"]["runs"]
+    assert control["frames"] == 4 and control["ate_rmse_m"] > 0
     assert report["settings"]["loss_kind"] == "pairs"
     assert report["pairs"]["train"] > 0 and report["pairs"]["test"] > 0
     assert len(report["loss_curve"]["minibatch"]) == 2
