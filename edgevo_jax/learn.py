@@ -35,14 +35,14 @@ Two adjoints, one switch:
   and the cost is smooth around it: ``newton_decrement(level_system(...)[0])`` at T* is then
   ~0 (relative to the cost). The plain computation rarely gets there on real frames: LM
   stops on a bilinear kink or against a jump of the consistency test (decrement ~0.2 for a
-  cost of ~60 on a bundled pair) and the implicit gradient is an approximation (there, 0.4 %
-  to several times off, depending on the parameter). With bicubic fields, ``refine=3`` and
-  float64 on bundled pairs the decrement falls to ~1e-25 and the implicit gradient equals
+  cost of ~60 on a bundled pair) and the implicit gradient is then an approximation (up to
+  several times off on bundled pairs). With bicubic fields, ``refine=3`` and float64, on two
+  of three bundled pairs the decrement falls to ~1e-25 and the implicit gradient equals
   central differences to better than 1e-5 relative and the unrolled one to ~1e-11
-  (``tests/test_learn.py``); the parameters that only act on coarse levels
-  (``log_huber[1:]``, the level feature's weight: that feature is 0 at level 0) and
-  ``reobs_a`` then have no effect at all. The rounds can stop before the decisions settle
-  (frames far apart, few inliers): check the decrement.
+  (``tests/test_learn.py``, ``scripts/check_implicit.py``); the parameters that only act on
+  coarse levels (``log_huber[1:]``, the level feature's weight: that feature is 0 at level
+  0) and ``reobs_a`` then have no effect at all. On the third pair (5 frames apart) the
+  rounds cycle between two sets of decisions and never settle: check the decrement.
 
 Hard decisions are constants in the backward pass, in both adjoints: the residual gate
 (r <= max_residual), visibility, the validity of edges, which keyframe and which edges were
@@ -343,7 +343,8 @@ def track_differentiable(
     hard decisions taken at its start for ``config.iterations[0]`` LM tries (a step is also
     kept when it shrinks the gradient without raising the cost beyond rounding), then takes
     them again (module docstring: with "bicubic", float64 and a few rounds the pose is a
-    stationary point of its own decisions, where the implicit adjoint is exact).
+    stationary point of its own decisions, where the implicit adjoint is exact; the rounds
+    can also cycle between decision sets: ``newton_decrement`` tells).
     ``consistency="hard"`` with ``Params.default(config)``, bilinear and no refinement runs
     the plain tracker's computation (same tries, same decisions). Jit with ``config``,
     ``adjoint``, ``consistency``, ``interpolation``, ``refine``, ``checkpoint`` static.
