@@ -46,12 +46,11 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import jaxlie
 import numpy as np
 
 from .camera import Intrinsics, unproject
 from .config import Config
-from .geometry import retract_left
+from .geometry import Rigid
 from .params import Params, edge_features, edge_weight
 from .preprocess import Frame
 from .residuals import consistency_dots_at_level, residual_and_jacobian, residual_jacobian_grad
@@ -59,9 +58,13 @@ from .selection import reobservation_probability
 from .solve import (
     KeyframeEdges,
     LevelSystem,
+    SolveKnobs,
     TrackResult,
+    lm_continues,
     lm_iteration,
+    lm_start,
     robust_system,
+    solve_knobs,
     track_result,
 )
 
@@ -80,7 +83,7 @@ class _EdgeData(NamedTuple):
 
 
 def _system(
-    T: jaxlie.SE3,
+    T: Rigid,
     params: Params,
     data: _EdgeData,
     mask: jnp.ndarray,
@@ -108,12 +111,13 @@ def _system(
                            config.max_residual[level], weight=weight, reject=reject,
                            weight_slope=slope)
     if consistency == "soft":  # inliers as the plain tracker counts them
-        system = system._replace(inliers=jnp.sum(mask & (dots >= params.eta)))
+        inliers = jnp.sum(mask & (dots >= params.eta)).astype(system.sums.dtype)
+        system = LevelSystem(system.sums.at[28].set(inliers))
     return system
 
 
 def _decisions(
-    T: jaxlie.SE3, params: Params, data: _EdgeData, kf: KeyframeEdges,
+    T: Rigid, params: Params, data: _EdgeData, kf: KeyframeEdges,
     edge_map: jnp.ndarray, level: int, config: Config, consistency: str,
 ) -> tuple[jnp.ndarray, jnp.ndarray]:
     """The hard decisions at T (as ``solve.normal_equations`` takes them): the inlier mask
@@ -128,36 +132,42 @@ def _decisions(
 
 
 def _align(
-    T: jaxlie.SE3, system_at, iterations: int, step_tol: float, checkpoint: bool
-) -> tuple[jaxlie.SE3, LevelSystem]:
-    """``iterations`` LM tries (a scan: reverse-differentiable), frozen once a try is shorter
-    than ``step_tol`` (what ``solve.align_level``'s while loop does by stopping)."""
+    T: Rigid, system_at, iterations: int, knobs: SolveKnobs, checkpoint: bool
+) -> tuple[Rigid, LevelSystem]:
+    """``iterations`` LM tries (a scan: reverse-differentiable), frozen once
+    ``solve.lm_continues`` says stop (what ``solve.align_level``'s while loop does)."""
 
     def body(carry, _):
-        T, system, lam, active = carry
-        T_new, sys_new, lam_new, step = lm_iteration(system_at, T, system, lam)
-        T, system, lam = jax.tree.map(
-            lambda a, b: jnp.where(active, a, b), (T_new, sys_new, lam_new), (T, system, lam)
-        )
-        return (T, system, lam, active & (jax.lax.stop_gradient(step) >= step_tol)), None
+        state, active = carry
+        new = lm_iteration(system_at, state)
+        state = jax.tree.map(lambda a, b: jnp.where(active, a, b), new, state)
+        return (state, active & jax.lax.stop_gradient(lm_continues(new, knobs))), None
 
     if checkpoint:
         body = jax.checkpoint(body)
-    system = system_at(T)
-    init = (T, system, jnp.asarray(1e-4, system.H.dtype), jnp.asarray(True))
-    (T, system, _, _), _ = jax.lax.scan(body, init, None, length=iterations)
-    return T, system
+    init = (lm_start(T, system_at(T)), jnp.asarray(True))
+    (state, _), _ = jax.lax.scan(body, init, None, length=iterations)
+    return state.T, state.system
 
 
-def _tangent_cotangent(T: jaxlie.SE3, ct: jnp.ndarray) -> jnp.ndarray:
-    """Cotangent of the pose parameters (wxyz_xyz, 7) -> of a left twist at T (6)."""
-    _, vjp = jax.vjp(lambda xi: retract_left(T, xi).wxyz_xyz, jnp.zeros(6, ct.dtype))
+def _flat(T: Rigid) -> jnp.ndarray:
+    """A pose's parameters as one array (12,): R row by row, then t."""
+    return jnp.concatenate([T.R.reshape(-1), T.t])
+
+
+def _unflat(x: jnp.ndarray) -> Rigid:
+    return Rigid(x[:9].reshape(3, 3), x[9:])
+
+
+def _tangent_cotangent(T: Rigid, ct: jnp.ndarray) -> jnp.ndarray:
+    """Cotangent of the pose parameters (``_flat``, 12) -> of a left twist at T (6)."""
+    _, vjp = jax.vjp(lambda xi: _flat(T.retract(xi)), jnp.zeros(6, ct.dtype))
     return vjp(ct)[0]
 
 
 @partial(jax.custom_vjp, nondiff_argnums=(0,))
 def _implicit_pose(stationarity, T_params: jnp.ndarray, inputs) -> jnp.ndarray:
-    """T* (wxyz_xyz) unchanged; its VJP is the implicit function theorem on
+    """T* (``_flat`` parameters) unchanged; its VJP is the implicit function theorem on
     ``stationarity(T, inputs) = 0`` (6,)."""
     del stationarity, inputs
     return T_params
@@ -169,11 +179,11 @@ def _implicit_fwd(stationarity, T_params, inputs):
 
 def _implicit_bwd(stationarity, res, ct):
     T_params, inputs = res
-    T = jaxlie.SE3(T_params)
+    T = _unflat(T_params)
     ct_xi = _tangent_cotangent(T, ct)
 
     def F_xi(xi):
-        return stationarity(retract_left(T, xi), inputs)[0]
+        return stationarity(T.retract(xi), inputs)[0]
 
     A = jax.jacfwd(F_xi)(jnp.zeros(6, T_params.dtype))  # dF/dxi (6, 6), exact
     F0, vjp_in, inliers = jax.vjp(lambda i: stationarity(T, i), inputs, has_aux=True)
@@ -239,6 +249,7 @@ def track_differentiable(
     dtype = dist[0].dtype
     intr = Intrinsics(*(jnp.asarray(v, dtype) for v in intr))
     mag = jnp.zeros_like(kf.rho) if mag is None else jnp.asarray(mag, kf.rho.dtype)
+    knobs = solve_knobs(config)
     if adjoint == "implicit":  # the forward pass without gradients
         inputs = jax.lax.stop_gradient((kf, dist, T_init, intr, params, mag))
         kf_s, dist_s, T_init_s, intr_s, params_s, mag_s = inputs
@@ -249,7 +260,7 @@ def track_differentiable(
         pts_k = unproject(intr, kf.uv, kf.rho)
         return _EdgeData(pts_k, kf.rho, mag, dist[level], intr)
 
-    T = jaxlie.SE3.from_matrix(T_init_s)
+    T = Rigid.from_matrix(jnp.asarray(T_init_s, dtype))
     for level in reversed(range(config.num_levels)):
         data = data_at(level, kf_s, dist_s, intr_s, mag_s)
 
@@ -259,7 +270,7 @@ def track_differentiable(
             return _system(T, params_s, data, mask, dots, kf_s.valid, level, config,
                            consistency)
 
-        T, final = _align(T, system_at, config.iterations[level], config.step_tol, checkpoint)
+        T, final = _align(T, system_at, config.iterations[level], knobs, checkpoint)
 
     data = data_at(0, kf, dist, intr, mag)
     if adjoint == "implicit":
@@ -267,7 +278,7 @@ def track_differentiable(
                                 edge_map, 0, config, consistency)
         f = data.pts_k.dtype
         inputs = (params, data, mask.astype(f), dots, kf.valid.astype(f))
-        T = jaxlie.SE3(_implicit_pose(_Stationarity(config, consistency), T.wxyz_xyz, inputs))
+        T = _unflat(_implicit_pose(_Stationarity(config, consistency), _flat(T), inputs))
         final = _system(T, params, data, mask, dots, kf.valid, 0, config, consistency)
     return track_result(T, final, data.pts_k, kf, dist[0].shape, intr)
 
