@@ -21,7 +21,7 @@ from .geometry import inverse_np, orthonormalise_np, scale_motion_np
 from .interp import stack_edge_maps
 from .keyframes import keyframe_reason
 from .local_map import LocalMap
-from .preprocess import Frame, preprocess
+from .preprocess import Frame, aligned_array, preprocess
 from .selection import keyframe_edges
 from .solve import KeyframeEdges, TrackResult, solve_knobs, solve_structure, track
 
@@ -124,6 +124,7 @@ class Odometry:
         # the solve's numbers, passed as (traced) arrays, and its static part: configurations
         # that differ in numbers only share one compiled program
         self.knobs, self._static = solve_knobs(config), solve_structure(config)
+        self._constants_key: tuple[float, ...] | None = None  # see _device_constants
         # the last two poses relative to the keyframe, A = T_(i-1)_kf and B = T_(i-2)_kf
         # (float32): the device predicts the next one from them (chunk.predict)
         self._rel: tuple[np.ndarray, np.ndarray] | None = None
@@ -158,8 +159,9 @@ class Odometry:
         if self._kf is None:
             return _Pending(frame, timestamp, self._initial, None, preprocess_ms, t_submit)
         A, B = self._rel
+        intr, knobs = self._device_constants()
         output = track_next_jit(self._kf.edges, frame.dist, frame.edge_map, A, B,
-                                self.intrinsics, self.knobs, config=self._static)
+                                intr, knobs, config=self._static)
         return _Pending(frame, timestamp, self._predict(), output, preprocess_ms, t_submit)
 
     def complete(self, pending: _Pending) -> FrameResult:
@@ -368,6 +370,16 @@ class Odometry:
             raise ValueError(f"timestamp must be finite, got {timestamp}")
         self._shape = depth.shape
 
+    def _device_constants(self) -> tuple[Intrinsics, object]:
+        """Intrinsics and solve knobs as device arrays, made once (and again when the local
+        map refines the intrinsics): a jitted call converts each host argument anew."""
+        key = tuple(self.intrinsics)
+        if self._constants_key != key:
+            self._constants = (Intrinsics(*jnp.asarray(key, jnp.float32)),
+                               jax.device_put(self.knobs))
+            self._constants_key = key
+        return self._constants
+
     def _predict(self) -> np.ndarray:
         """Constant velocity: T_w_pred = T_w_last (T_w_prev^-1 T_w_last)."""
         if len(self._poses) < 2:
@@ -377,7 +389,7 @@ class Odometry:
 
     def _relative_from_world(self) -> tuple[np.ndarray, np.ndarray]:
         """A, B (float32) from the last two world poses and the keyframe's (float64)."""
-        rel = [(inverse_np(p) @ self._kf.pose).astype(np.float32) for p in self._poses]
+        rel = [aligned_array(inverse_np(p) @ self._kf.pose, np.float32) for p in self._poses]
         return rel[-1], rel[0]
 
     def _push(self, pose: np.ndarray) -> None:
