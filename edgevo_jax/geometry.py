@@ -128,10 +128,22 @@ def rotation_angle_np(T: np.ndarray) -> float:
 
 
 def orthonormalise_np(T: np.ndarray) -> np.ndarray:
-    """T (4, 4) with its rotation block projected back onto SO(3) (float32 round-off)."""
-    u, _, vt = np.linalg.svd(T[:3, :3])
-    out = T.copy()
-    out[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    """T (4, 4) with its rotation block projected back onto SO(3) (float32 round-off): the
+    nearest rotation (polar factor) by Newton's iteration R <- R (3 I - R^T R) / 2, which
+    converges quadratically from a nearly orthonormal R (an SVD costs ten times more in
+    numpy's per-call overhead; the tracker does this on every frame)."""
+    R = np.asarray(T[:3, :3], np.float64)
+    eye = np.eye(3)
+    for _ in range(3):
+        err = R.T @ R - eye
+        if np.abs(err).max() < 1e-15:
+            break
+        R = R @ (1.5 * eye - 0.5 * (R.T @ R))
+    if np.abs(R.T @ R - eye).max() > 1e-9 or np.linalg.det(R) < 0:  # far from a rotation
+        u, _, vt = np.linalg.svd(T[:3, :3])
+        R = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    out = np.array(T, np.float64, copy=True)
+    out[:3, :3] = R
     return out
 
 

@@ -12,6 +12,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .hostmem import aligned_stack
+
 _PATCH = jax.lax.GatherDimensionNumbers(
     offset_dims=(1, 2), collapsed_slice_dims=(), start_index_map=(0, 1))
 
@@ -110,4 +112,4 @@ def _direction_table(dtype) -> jnp.ndarray:
 
 def stack_edge_maps(maps) -> EdgeMap:
     """EdgeMaps (numpy) stacked on a new leading axis: dist0 (n, H, W), code (n, H, W)."""
-    return EdgeMap(*(np.stack(xs) for xs in zip(*maps, strict=True)))
+    return EdgeMap(*(aligned_stack(xs) for xs in zip(*maps, strict=True)))

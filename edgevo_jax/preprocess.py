@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from .config import Config
+from .hostmem import aligned_empty
 from .interp import EdgeMap
 
 
@@ -71,25 +72,6 @@ def detect_edges(gray: np.ndarray, config: Config) -> tuple[np.ndarray, np.ndarr
     gx, gy = cv2.spatialGradient(blurred)
     edges = cv2.Canny(gx, gy, config.canny_low, config.canny_high, L2gradient=True)
     return edges, gx, gy
-
-
-def aligned_empty(shape: tuple[int, ...], dtype: np.dtype | type, align: int = 64
-                  ) -> np.ndarray:
-    """An uninitialised array whose data starts on an ``align``-byte boundary: JAX's CPU
-    backend uses such a numpy array in place, where it copies a misaligned one (~0.1 ms per
-    640x480 float field, per call)."""
-    n = int(np.prod(shape)) * np.dtype(dtype).itemsize
-    buf = np.empty(n + align, np.uint8)
-    start = (-buf.ctypes.data) % align
-    return buf[start:start + n].view(dtype).reshape(shape)
-
-
-def aligned_array(x: np.ndarray, dtype: np.dtype | type | None = None) -> np.ndarray:
-    """A 64-byte aligned copy of x (optionally cast): see ``aligned_empty``."""
-    x = np.asarray(x)
-    out = aligned_empty(x.shape, dtype or x.dtype)
-    out[...] = x
-    return out
 
 
 def distance_pyramid(level0: np.ndarray, num_levels: int) -> tuple[np.ndarray, ...]:

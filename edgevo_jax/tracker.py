@@ -18,10 +18,11 @@ from .camera import Intrinsics
 from .chunk import track_chunk_jit, track_next_jit
 from .config import Config
 from .geometry import inverse_np, orthonormalise_np, scale_motion_np
+from .hostmem import aligned_array, aligned_stack
 from .interp import stack_edge_maps
 from .keyframes import keyframe_reason
 from .local_map import LocalMap
-from .preprocess import Frame, aligned_array, preprocess
+from .preprocess import Frame, preprocess
 from .selection import keyframe_edges
 from .solve import KeyframeEdges, TrackResult, solve_knobs, solve_structure, track
 
@@ -214,7 +215,8 @@ class Odometry:
         if not 0 < len(frames) <= size:
             raise ValueError(f"a chunk takes 1 to {size} frames, got {len(frames)}")
         frames = list(frames) + [frames[-1]] * (size - len(frames))
-        dist = tuple(np.stack([f.dist[lv] for f in frames]) for lv in range(len(frames[0].dist)))
+        dist = tuple(aligned_stack([f.dist[lv] for f in frames])
+                     for lv in range(len(frames[0].dist)))
         ng = stack_edge_maps([f.edge_map for f in frames])
         kf, A, B, intr, knobs = self.chunk_inputs()
         return track_chunk_jit(kf, dist, ng, A, B, intr, knobs, config=self._static)
@@ -307,7 +309,8 @@ class Odometry:
             return "non-finite pose"
         if int(res.inliers) < self.config.min_inliers:
             return f"too few inliers ({int(res.inliers)})"
-        cond = np.linalg.cond(cov)
+        eig = np.linalg.eigvalsh(0.5 * (cov + cov.T))  # symmetric: cheaper than cond's SVD
+        cond = eig[-1] / eig[0] if eig[0] > 0 else np.inf
         if not cond <= self.config.max_covariance_condition:
             return f"covariance ill-conditioned (condition {cond:.2g})"
         return None
