@@ -126,56 +126,61 @@ def frame_from_edges(
     return PreprocessJob.start(edges, gx, gy, depth, config).finish()
 
 
+def edge_fields(edges: np.ndarray, pts: np.ndarray, grad: np.ndarray, num_levels: int
+                ) -> tuple[tuple[np.ndarray, ...], EdgeMap]:
+    """The distance-field pyramid and the ``EdgeMap`` of an edge mask (H, W) with edge pixels
+    pts (N, 2) and their normalised gradients grad (N, 2): the image-sized half of the
+    preprocessing (OpenCV and numpy, which release the GIL: it runs on the worker thread)."""
+    h, w = edges.shape
+    if pts.shape[0]:
+        # a 5x5 chamfer L2 distance (within 0.08 px of the exact one inside the 5 px
+        # residual gate on TUM frames)
+        dist0 = cv2.distanceTransform(cv2.bitwise_not(edges), cv2.DIST_L2, cv2.DIST_MASK_5,
+                                      dst=aligned_empty((h, w), np.float32))
+    else:  # no edge at all: every distance is "far"; the tracker reports the frame lost
+        dist0 = aligned_empty((h, w), np.float32)
+        dist0.fill(float(h + w))
+    return distance_pyramid(dist0, num_levels), EdgeMap(dist0, direction_codes(pts, grad, (h, w)))
+
+
 @dataclass(frozen=True)
 class PreprocessJob:
-    """A frame whose distance transform runs on the worker thread (it is half of the
-    preprocessing; OpenCV releases the GIL, so the caller's thread can work meanwhile)."""
+    """A frame whose edge pixels are known and whose image-sized fields (distance transform,
+    pyramid, direction codes: ``edge_fields``) are being made on the worker thread, so that
+    the caller's thread can work meanwhile."""
 
-    edges: np.ndarray
-    gx: np.ndarray
-    gy: np.ndarray
-    depth: np.ndarray
-    config: Config
     pts: np.ndarray  # (N, 2) int32 edge pixels in raster order
-    transform: Future | None
+    grad: np.ndarray  # (N, 2) normalised image gradients
+    mag: np.ndarray  # (N,) gradient magnitudes
+    depth: np.ndarray  # (N,) depth at the edge pixels (m, 0 = missing)
+    fields: Future
 
     @classmethod
     def start(cls, edges, gx, gy, depth, config: Config) -> PreprocessJob:
-        """Find the edge pixels and launch the distance transform."""
-        pts = cv2.findNonZero(edges)  # raster order
-        transform = None
-        if pts is not None:
-            # a 5x5 chamfer L2 distance (within 0.08 px of the exact one inside the 5 px
-            # residual gate on TUM frames)
-            transform = _worker().submit(
-                cv2.distanceTransform, cv2.bitwise_not(edges), cv2.DIST_L2, cv2.DIST_MASK_5,
-                dst=aligned_empty(edges.shape, np.float32))
-        pts = np.zeros((0, 2), np.int32) if pts is None else pts.reshape(-1, 2)
-        return cls(edges, gx, gy, depth, config, pts, transform)
-
-    def finish(self) -> Frame:
-        """Gather the edges' gradients and depths, wait for the transform, build the Frame."""
-        h, w = self.edges.shape
-        us, vs = self.pts[:, 0], self.pts[:, 1]
-        flat = vs * w + us
-        egx = np.take(self.gx.ravel(), flat).astype(np.float32)
-        egy = np.take(self.gy.ravel(), flat).astype(np.float32)
+        """Find the edge pixels, gather their gradients and depths, and launch
+        ``edge_fields`` on the worker thread."""
+        h, w = edges.shape
+        found = cv2.findNonZero(edges)  # raster order
+        pts = np.zeros((0, 2), np.int32) if found is None else found.reshape(-1, 2)
+        flat = pts[:, 1] * w + pts[:, 0]
+        egx = np.take(gx.ravel(), flat).astype(np.float32)
+        egy = np.take(gy.ravel(), flat).astype(np.float32)
         mag = np.hypot(egx, egy)
         grad = np.stack([egx, egy], axis=-1) / np.maximum(mag, 1e-6)[:, None]
-        code = direction_codes(self.pts, grad, (h, w))
-        if self.transform is not None:
-            dist0 = self.transform.result()
-        else:  # no edge at all: every distance is "far"; the tracker reports the frame lost
-            dist0 = aligned_empty((h, w), np.float32)
-            dist0.fill(float(h + w))
-        cfg = self.config
-        d = np.take(self.depth.ravel(), flat).astype(np.float32)
-        d = np.where(np.isfinite(d) & (d >= cfg.min_depth) & (d <= cfg.max_depth), d, 0.0)
+        d = np.take(depth.ravel(), flat).astype(np.float32)
+        d = np.where(np.isfinite(d) & (d >= config.min_depth) & (d <= config.max_depth), d, 0.0)
+        fields = _worker().submit(edge_fields, edges, pts, grad, config.num_levels)
+        return cls(pts, grad.astype(np.float32), mag.astype(np.float32), d.astype(np.float32),
+                   fields)
+
+    def finish(self) -> Frame:
+        """Wait for the worker's fields and build the Frame."""
+        dist, edge_map = self.fields.result()
         return Frame(
             edge_uv=self.pts.astype(np.float32),
-            edge_grad=grad.astype(np.float32),
-            edge_mag=mag.astype(np.float32),
-            edge_depth=d.astype(np.float32),
-            dist=distance_pyramid(dist0, cfg.num_levels),
-            edge_map=EdgeMap(dist0, code),
+            edge_grad=self.grad,
+            edge_mag=self.mag,
+            edge_depth=self.depth,
+            dist=dist,
+            edge_map=edge_map,
         )
