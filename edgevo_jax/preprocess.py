@@ -112,8 +112,9 @@ def preprocess(rgb: np.ndarray, depth: np.ndarray, config: Config) -> Frame:
 
 
 def start_preprocess(rgb: np.ndarray, depth: np.ndarray, config: Config) -> PreprocessJob:
-    """The first half of ``preprocess``: edges found and the distance transform launched on
-    the worker thread. Do other work, then call ``.finish()`` for the Frame."""
+    """The first half of ``preprocess``: edges found, the distance fields launched on the
+    worker thread, the edges' gradients and depths gathered. Do other work, then call
+    ``.finish()`` for the Frame."""
     edges, gx, gy = detect_edges(to_gray(rgb), config)
     return PreprocessJob.start(edges, gx, gy, depth, config)
 
@@ -126,13 +127,12 @@ def frame_from_edges(
     return PreprocessJob.start(edges, gx, gy, depth, config).finish()
 
 
-def edge_fields(edges: np.ndarray, pts: np.ndarray, grad: np.ndarray, num_levels: int
-                ) -> tuple[tuple[np.ndarray, ...], EdgeMap]:
-    """The distance-field pyramid and the ``EdgeMap`` of an edge mask (H, W) with edge pixels
-    pts (N, 2) and their normalised gradients grad (N, 2): the image-sized half of the
-    preprocessing (OpenCV and numpy, which release the GIL: it runs on the worker thread)."""
+def distance_fields(edges: np.ndarray, num_levels: int) -> tuple[np.ndarray, ...]:
+    """The distance-field pyramid of an edge mask (H, W) (non-zero on edges): the largest
+    part of the preprocessing, in OpenCV calls that release the GIL (it runs on the worker
+    thread while the caller's thread works)."""
     h, w = edges.shape
-    if pts.shape[0]:
+    if cv2.countNonZero(edges):
         # a 5x5 chamfer L2 distance (within 0.08 px of the exact one inside the 5 px
         # residual gate on TUM frames)
         dist0 = cv2.distanceTransform(cv2.bitwise_not(edges), cv2.DIST_L2, cv2.DIST_MASK_5,
@@ -140,25 +140,26 @@ def edge_fields(edges: np.ndarray, pts: np.ndarray, grad: np.ndarray, num_levels
     else:  # no edge at all: every distance is "far"; the tracker reports the frame lost
         dist0 = aligned_empty((h, w), np.float32)
         dist0.fill(float(h + w))
-    return distance_pyramid(dist0, num_levels), EdgeMap(dist0, direction_codes(pts, grad, (h, w)))
+    return distance_pyramid(dist0, num_levels)
 
 
 @dataclass(frozen=True)
 class PreprocessJob:
-    """A frame whose edge pixels are known and whose image-sized fields (distance transform,
-    pyramid, direction codes: ``edge_fields``) are being made on the worker thread, so that
-    the caller's thread can work meanwhile."""
+    """A frame whose edge pixels, gradients and depths are known and whose distance fields
+    (``distance_fields``) are being made on the worker thread."""
 
     pts: np.ndarray  # (N, 2) int32 edge pixels in raster order
     grad: np.ndarray  # (N, 2) normalised image gradients
     mag: np.ndarray  # (N,) gradient magnitudes
     depth: np.ndarray  # (N,) depth at the edge pixels (m, 0 = missing)
+    shape: tuple[int, int]
     fields: Future
 
     @classmethod
     def start(cls, edges, gx, gy, depth, config: Config) -> PreprocessJob:
-        """Find the edge pixels, gather their gradients and depths, and launch
-        ``edge_fields`` on the worker thread."""
+        """Launch ``distance_fields`` on the worker thread, then find the edge pixels and
+        gather their gradients and depths."""
+        fields = _worker().submit(distance_fields, edges, config.num_levels)
         h, w = edges.shape
         found = cv2.findNonZero(edges)  # raster order
         pts = np.zeros((0, 2), np.int32) if found is None else found.reshape(-1, 2)
@@ -169,18 +170,19 @@ class PreprocessJob:
         grad = np.stack([egx, egy], axis=-1) / np.maximum(mag, 1e-6)[:, None]
         d = np.take(depth.ravel(), flat).astype(np.float32)
         d = np.where(np.isfinite(d) & (d >= config.min_depth) & (d <= config.max_depth), d, 0.0)
-        fields = _worker().submit(edge_fields, edges, pts, grad, config.num_levels)
         return cls(pts, grad.astype(np.float32), mag.astype(np.float32), d.astype(np.float32),
-                   fields)
+                   (h, w), fields)
 
     def finish(self) -> Frame:
-        """Wait for the worker's fields and build the Frame."""
-        dist, edge_map = self.fields.result()
+        """Make the direction codes (while the worker may still run), wait for the distance
+        fields and build the Frame."""
+        code = direction_codes(self.pts, self.grad, self.shape)
+        dist = self.fields.result()
         return Frame(
             edge_uv=self.pts.astype(np.float32),
             edge_grad=self.grad,
             edge_mag=self.mag,
             edge_depth=self.depth,
             dist=dist,
-            edge_map=edge_map,
+            edge_map=EdgeMap(dist[0], code),
         )
