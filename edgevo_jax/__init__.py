@@ -1,8 +1,12 @@
 """edgevo_jax: edge-based RGB-D visual odometry (EdgeVO) in JAX."""
 
-from .camera import Intrinsics
-from .config import Config
-from .tracker import FrameResult, Odometry
+from .determinism import cap_cpu_isa
+
+cap_cpu_isa()  # before any JAX computation: see determinism.py
+
+from .camera import Intrinsics  # noqa: E402
+from .config import Config  # noqa: E402
+from .tracker import FrameResult, Odometry  # noqa: E402
 
 __all__ = ["Config", "FrameResult", "Intrinsics", "Odometry"]
 __version__ = "0.1.0"

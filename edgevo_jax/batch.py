@@ -47,6 +47,7 @@ from .camera import Intrinsics
 from .chunk import track_chunk
 from .config import Config
 from .datasets.tum import TumSequence
+from .hostmem import aligned_stack
 from .interp import stack_edge_maps
 from .preprocess import Frame, preprocess
 from .runner import initial_pose
@@ -301,11 +302,12 @@ def _stack_inputs(lanes: list[_Lane], srcs: list[_Frames], slowest: list[int], w
     size = 1 << (len(per_lane) - 1).bit_length()
     size += -size % num_devices
     per_lane += [per_lane[-1]] * (size - len(per_lane))
-    kf, source, offset, A, B, intr, knobs = jax.tree.map(lambda *xs: np.stack(xs), *per_lane)
+    kf, source, offset, A, B, intr, knobs = jax.tree.map(lambda *xs: aligned_stack(xs),
+                                                         *per_lane)
     frames = [[src[low + j] for j in range(width)] for src, low in zip(srcs, slowest,
                                                                        strict=True)]
     levels = len(frames[0][0].dist)
-    window_dist = tuple(np.stack([np.stack([f.dist[lv] for f in fs]) for fs in frames])
+    window_dist = tuple(aligned_stack([aligned_stack([f.dist[lv] for f in fs]) for fs in frames])
                         for lv in range(levels))
     window_ng = stack_edge_maps([stack_edge_maps([f.edge_map for f in fs]) for fs in frames])
     return kf, window_dist, window_ng, source, offset, A, B, Intrinsics(*intr.T), knobs

@@ -14,6 +14,11 @@ weights the paper adopts):
   not the texture, and the random partition order follows the edge density (coarser grids
   force one edge into every textureless cell: worse on fr3_teddy, see the ablation).
   lambda = 1 only regularises the first picks (one edge's information is ~ (f / Z)^2 ~ 1e5).
+- Levenberg-Marquardt stops a level after 3 rejected tries in a row: each rejection keeps
+  the pose and grows the damping tenfold, so the third asks for a step ~1000x shorter than
+  Gauss-Newton's. On the non-smooth distance fields levels used to end on the iteration
+  budget instead (fr3_teddy: 28.7 of 30 tries per frame, 17.8 of them rejected); stopping
+  after 3 kept the accuracy (ATE over selection seeds 0-5: 8.3 against 9.1 mm).
 - Keyframe rule w1 * t + w2 * t' > 1 with t, t' the RMS optical flow in pixels (with and
   without rotation) and w1 = 1/50, w2 = 1/25 px^-1: DSO's 0.02 / 0.04 weights, i.e. a new keyframe
   after ~50 px of general or ~25 px of translational flow; correspondences under 30 % of their
@@ -60,6 +65,7 @@ class Config:
     max_residual: tuple[float, ...] = (5.0, 5.0, 5.0)  # residual gate, pixels of each level
     eta: float = 0.6  # gradient consistency: reject g(p) . g(p') < eta
     step_tol: float = 1e-5  # stop a level once the update's norm is below this
+    max_rejects: int = 3  # stop a level after this many rejected LM tries in a row
     min_inliers: int = 30  # fewer level-0 inliers than this: tracking lost
     max_covariance_condition: float = 1e6  # lost beyond (TUM frames: 40-400, see README)
     recovery_keyframes: int = 3  # earlier keyframes tried after a loss

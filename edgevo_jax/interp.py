@@ -18,6 +18,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .hostmem import aligned_stack
+
+_PATCH = jax.lax.GatherDimensionNumbers(
+    offset_dims=(1, 2), collapsed_slice_dims=(), start_index_map=(0, 1))
+
 
 def _corners(field: jnp.ndarray, uv: jnp.ndarray):
     h, w = field.shape
@@ -27,9 +32,11 @@ def _corners(field: jnp.ndarray, uv: jnp.ndarray):
     v0 = jnp.clip(jnp.floor(v), 0, h - 2)
     fu = jnp.clip(u - u0, 0.0, 1.0)
     fv = jnp.clip(v - v0, 0.0, 1.0)
-    base = v0.astype(jnp.int32) * w + u0.astype(jnp.int32)
-    flat = field.reshape(-1)
-    f00, f01, f10, f11 = (jnp.take(flat, base + o, mode="clip") for o in (0, 1, w, w + 1))
+    # one gather of the 2 x 2 patch at (v0, u0) rather than four of single values: on XLA's
+    # CPU backend each gather is a kernel of its own that recomputes the points it reads
+    start = jnp.stack([v0, u0], axis=-1).astype(jnp.int32)
+    patch = jax.lax.gather(field, start, _PATCH, (2, 2), mode="clip")
+    f00, f01, f10, f11 = patch[:, 0, 0], patch[:, 0, 1], patch[:, 1, 0], patch[:, 1, 1]
     return f00, f01, f10, f11, fu, fv, valid
 
 
@@ -145,7 +152,9 @@ def edge_direction_at(
     p' = uv0 - d g / |g|, and code (H, W) the direction map. Held constant under
     differentiation."""
     uv0, d, g = (jax.lax.stop_gradient(a) for a in (uv0, d, g))
-    norm = jnp.sqrt(jnp.sum(g * g, axis=0))
+    # two terms written out, not jnp.sum over the axis: XLA on CPU hands small reductions
+    # of batched (vmapped) arrays to a library call that is slow at thousands of points
+    norm = jnp.sqrt(g[0] * g[0] + g[1] * g[1])
     target = uv0 - g * (d / jnp.maximum(norm, 1e-6))
     c = nearest(code[..., None], target)[0].astype(jnp.int32)
     table = _direction_table(uv0.dtype)
@@ -162,4 +171,4 @@ def _direction_table(dtype) -> jnp.ndarray:
 
 def stack_edge_maps(maps) -> EdgeMap:
     """EdgeMaps (numpy) stacked on a new leading axis: dist0 (n, H, W), code (n, H, W)."""
-    return EdgeMap(*(np.stack(xs) for xs in zip(*maps, strict=True)))
+    return EdgeMap(*(aligned_stack(xs) for xs in zip(*maps, strict=True)))

@@ -68,13 +68,12 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import jaxlie
 import numpy as np
 
 from .camera import Intrinsics, unproject
 from .chunk import predict
 from .config import Config
-from .geometry import retract_left
+from .geometry import Rigid
 from .interp import bicubic_with_grad
 from .params import Params, weighting_of
 from .preprocess import Frame
@@ -84,10 +83,15 @@ from .selection import reobservation_probability
 from .solve import (
     KeyframeEdges,
     LevelSystem,
+    LMTry,
+    SolveKnobs,
     TrackResult,
     damped_step,
+    lm_continues,
     lm_iteration,
+    lm_start,
     robust_system,
+    solve_knobs,
     track_result,
 )
 
@@ -97,7 +101,7 @@ INTERPOLATIONS = ("bilinear", "bicubic")
 
 
 def _residuals(
-    field: jnp.ndarray, intr: Intrinsics, T: jaxlie.SE3, pts_k: jnp.ndarray, interpolation: str
+    field: jnp.ndarray, intr: Intrinsics, T: Rigid, pts_k: jnp.ndarray, interpolation: str
 ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray]:
     """``residuals.residual_jacobian_grad`` with the field read by ``interpolation``:
     residuals (K,), Jacobian (6, K), validity (K,), warped pixels (2, K), field gradient
@@ -128,7 +132,7 @@ class _Spec(NamedTuple):
 
 
 def _system(
-    T: jaxlie.SE3,
+    T: Rigid,
     params: Params,
     data: _EdgeData,
     mask: jnp.ndarray,
@@ -154,12 +158,13 @@ def _system(
                            config.max_residual[level], weight=weight, reject=reject,
                            weight_slope=slope)
     if spec.consistency == "soft":  # inliers as the plain tracker counts them
-        system = system._replace(inliers=jnp.sum(mask & (dots >= params.eta)))
+        inliers = jnp.sum(mask & (dots >= params.eta)).astype(system.sums.dtype)
+        system = LevelSystem(system.sums.at[28].set(inliers))
     return system
 
 
 def _decisions(
-    T: jaxlie.SE3, params: Params, data: _EdgeData, kf: KeyframeEdges,
+    T: Rigid, params: Params, data: _EdgeData, kf: KeyframeEdges,
     edge_map: jnp.ndarray, level: int, spec: _Spec,
 ) -> tuple[jnp.ndarray, jnp.ndarray]:
     """The hard decisions at T (as ``solve.normal_equations`` takes them): the inlier mask
@@ -173,82 +178,64 @@ def _decisions(
     return mask, dots
 
 
-def _lm_try(system_at, T: jaxlie.SE3, system: LevelSystem, lam: jnp.ndarray, settle: bool):
+def _lm_try(system_at, state: LMTry, settle: bool) -> LMTry:
     """``solve.lm_iteration``; with ``settle``, a step is also kept when it shrinks the
     gradient without raising the cost beyond rounding (near a stationary point cost
     differences drown in rounding while the gradient still says where to go)."""
     if not settle:
-        return lm_iteration(system_at, T, system, lam)
-    xi = damped_step(system, lam)
-    T_new = retract_left(T, xi)
+        return lm_iteration(system_at, state)
+    system = state.system
+    xi = damped_step(system, state.lam)
+    T_new = state.T.retract(xi)
     sys_new = system_at(T_new)
     slack = 64 * jnp.finfo(system.cost.dtype).eps * (jnp.abs(system.cost) + 1.0)
     better = (sys_new.cost < system.cost) | (
         (sys_new.cost <= system.cost + slack) & (sys_new.g @ sys_new.g < system.g @ system.g))
-    T, system = jax.tree.map(lambda a, b: jnp.where(better, a, b), (T_new, sys_new), (T, system))
-    lam = jnp.clip(jnp.where(better, lam * 0.1, lam * 10.0), 1e-6, 1e4)
-    return T, system, lam, jnp.linalg.norm(xi)
+    T, system = jax.tree.map(lambda a, b: jnp.where(better, a, b), (T_new, sys_new),
+                             (state.T, system))
+    lam = jnp.clip(jnp.where(better, state.lam * 0.1, state.lam * 10.0), 1e-6, 1e4)
+    rejects = jnp.where(better, 0, state.rejects + 1)
+    return LMTry(T, system, lam, jnp.sqrt(xi @ xi), rejects)
 
 
 def _align(
-    T: jaxlie.SE3, system_at, iterations: int, step_tol: float, checkpoint: bool,
+    T: Rigid, system_at, iterations: int, knobs: SolveKnobs, checkpoint: bool,
     settle: bool = False,
-) -> tuple[jaxlie.SE3, LevelSystem]:
-    """``iterations`` LM tries (a scan: reverse-differentiable), frozen once a try is shorter
-    than ``step_tol`` (what ``solve.align_level``'s while loop does by stopping)."""
+) -> tuple[Rigid, LevelSystem]:
+    """``iterations`` LM tries (a scan: reverse-differentiable), frozen once
+    ``solve.lm_continues`` says stop (what ``solve.align_level``'s while loop does)."""
 
     def body(carry, _):
-        T, system, lam, active = carry
-        T_new, sys_new, lam_new, step = _lm_try(system_at, T, system, lam, settle)
-        T, system, lam = jax.tree.map(
-            lambda a, b: jnp.where(active, a, b), (T_new, sys_new, lam_new), (T, system, lam)
-        )
-        return (T, system, lam, active & (jax.lax.stop_gradient(step) >= step_tol)), None
+        state, active = carry
+        new = _lm_try(system_at, state, settle)
+        state = jax.tree.map(lambda a, b: jnp.where(active, a, b), new, state)
+        return (state, active & jax.lax.stop_gradient(lm_continues(new, knobs))), None
 
     if checkpoint:
         body = jax.checkpoint(body)
-    system = system_at(T)
-    init = (T, system, jnp.asarray(1e-4, system.H.dtype), jnp.asarray(True))
-    (T, system, _, _), _ = jax.lax.scan(body, init, None, length=iterations)
-    return T, system
+    init = (lm_start(T, system_at(T)), jnp.asarray(True))
+    (state, _), _ = jax.lax.scan(body, init, None, length=iterations)
+    return state.T, state.system
 
 
-#: Newton steps (exact Hessian) that end each refinement round: LM's test on the cost stops
-#: where cost differences drown in rounding (pose ~1e-10 off in float64); two Newton steps on
-#: the gradient take it to the stationary point's rounding level.
-NEWTON_STEPS = 2
+def _flat(T: Rigid) -> jnp.ndarray:
+    """A pose's parameters as one array (12,): R row by row, then t."""
+    return jnp.concatenate([T.R.reshape(-1), T.t])
 
 
-def _newton_step(
-    T: jaxlie.SE3, system: LevelSystem, system_at
-) -> tuple[jaxlie.SE3, LevelSystem]:
-    """One Newton step on the gradient g of a smooth cost (``system_at``, hard decisions
-    held), xi = -(dg/dxi)^-1 g with the exact (autodiff) Hessian; kept only when it shrinks
-    |g| without raising the cost beyond rounding, and is finite."""
-
-    def g_of(xi):
-        return system_at(retract_left(T, xi)).g
-
-    A = jax.jacfwd(g_of)(jnp.zeros(6, system.g.dtype))
-    xi = -jnp.linalg.solve(A, system.g)
-    T_new = retract_left(T, jnp.where(jnp.all(jnp.isfinite(xi)), xi, 0.0))
-    sys_new = system_at(T_new)
-    slack = 64 * jnp.finfo(system.cost.dtype).eps * (jnp.abs(system.cost) + 1.0)
-    keep = (jnp.all(jnp.isfinite(xi)) & (system.inliers >= 6)
-            & (jnp.sum(sys_new.g**2) < jnp.sum(system.g**2))
-            & (sys_new.cost <= system.cost + slack))
-    return jax.tree.map(lambda a, b: jnp.where(keep, a, b), (T_new, sys_new), (T, system))
+def _unflat(x: jnp.ndarray) -> Rigid:
+    return Rigid(x[:9].reshape(3, 3), x[9:])
 
 
-def _tangent_cotangent(T: jaxlie.SE3, ct: jnp.ndarray) -> jnp.ndarray:
-    """Cotangent of the pose parameters (wxyz_xyz, 7) -> of a left twist at T (6)."""
-    _, vjp = jax.vjp(lambda xi: retract_left(T, xi).wxyz_xyz, jnp.zeros(6, ct.dtype))
+def _tangent_cotangent(T: Rigid, ct: jnp.ndarray) -> jnp.ndarray:
+    """Cotangent of the pose parameters (``_flat``, 12) -> of a left twist at T (6)."""
+    _, vjp = jax.vjp(lambda xi: _flat(T.retract(xi)), jnp.zeros(6, ct.dtype))
     return vjp(ct)[0]
 
 
 @partial(jax.custom_vjp, nondiff_argnums=(0,))
 def _implicit_pose(stationarity, T_params: jnp.ndarray, inputs) -> jnp.ndarray:
-    """T* (wxyz_xyz) unchanged; its VJP is the implicit function theorem on
+    """T* (``_flat`` parameters) unchanged; its VJP is the implicit function theorem on
     ``stationarity(T, inputs) = 0`` (6,)."""
     del stationarity, inputs
     return T_params
@@ -260,11 +247,11 @@ def _implicit_fwd(stationarity, T_params, inputs):
 
 def _implicit_bwd(stationarity, res, ct):
     T_params, inputs = res
-    T = jaxlie.SE3(T_params)
+    T = _unflat(T_params)
     ct_xi = _tangent_cotangent(T, ct)
 
     def F_xi(xi):
-        return stationarity(retract_left(T, xi), inputs)[0]
+        return stationarity(T.retract(xi), inputs)[0]
 
     A = jax.jacfwd(F_xi)(jnp.zeros(6, T_params.dtype))  # dF/dxi (6, 6), exact
     F0, vjp_in, inliers = jax.vjp(lambda i: stationarity(T, i), inputs, has_aux=True)
@@ -352,13 +339,14 @@ def track_differentiable(
     _check_options(adjoint, consistency, interpolation)
     spec = _Spec(config, consistency, interpolation)
     intr, mag = _as_arrays(kf, dist, intr, mag)
+    knobs = solve_knobs(config)
     if adjoint == "implicit":  # the forward pass without gradients
         inputs = jax.lax.stop_gradient((kf, dist, T_init, intr, params, mag))
         kf_s, dist_s, T_init_s, intr_s, params_s, mag_s = inputs
     else:
         kf_s, dist_s, T_init_s, intr_s, params_s, mag_s = kf, dist, T_init, intr, params, mag
 
-    T = jaxlie.SE3.from_matrix(T_init_s)
+    T = Rigid.from_matrix(jnp.asarray(T_init_s, dist[0].dtype))
     for level in reversed(range(config.num_levels)):
         data = _data_at(level, kf_s, dist_s, intr_s, mag_s)
 
@@ -366,11 +354,11 @@ def track_differentiable(
             mask, dots = _decisions(T, params_s, data, kf_s, edge_map, level, spec)
             return _system(T, params_s, data, mask, dots, kf_s.valid, level, spec)
 
-        T, final = _align(T, system_at, config.iterations[level], config.step_tol, checkpoint)
+        T, final = _align(T, system_at, config.iterations[level], knobs, checkpoint)
 
     # the hard decisions of level 0 at the solve's pose; each refinement round holds them
-    # for config.iterations[0] LM tries and NEWTON_STEPS Newton steps, then takes them
-    # again at the pose it reached (the last round's stay, for the implicit adjoint)
+    # for config.iterations[0] LM tries, then takes them again at the pose it reached (the
+    # last round's stay, for the implicit adjoint)
     data_s = _data_at(0, kf_s, dist_s, intr_s, mag_s)
     mask, dots = _decisions(T, params_s, data_s, kf_s, edge_map, 0, spec)
 
@@ -378,8 +366,7 @@ def track_differentiable(
         def system_at(T):
             return _system(T, params_s, data_s, mask, dots, kf_s.valid, 0, spec)
 
-        return _align(T, system_at, config.iterations[0], config.step_tol, checkpoint,
-                      settle=True)
+        return _align(T, system_at, config.iterations[0], knobs, checkpoint, settle=True)
 
     def next_round(carry, _):  # a round; then the decisions at its pose, for the next one
         T, mask, dots, _held = carry
@@ -395,7 +382,7 @@ def track_differentiable(
     if adjoint == "implicit":  # the stationarity of the decisions at (or held to) T
         f = data.pts_k.dtype
         inputs = (params, data, mask.astype(f), dots, kf.valid.astype(f))
-        T = jaxlie.SE3(_implicit_pose(_Stationarity(spec), T.wxyz_xyz, inputs))
+        T = _unflat(_implicit_pose(_Stationarity(spec), _flat(T), inputs))
         final = _system(T, params, data, mask, dots, kf.valid, 0, spec)
     return track_result(T, final, data.pts_k, kf, dist[0].shape, intr)
 
@@ -413,20 +400,19 @@ def level_system(
     mag: jnp.ndarray | None = None,
     consistency: str = "soft",
     interpolation: str = "bilinear",
-) -> tuple[LevelSystem, jnp.ndarray]:
+) -> tuple[LevelSystem, jnp.ndarray, jnp.ndarray]:
     """What ``track_differentiable``'s LM sees at pose T_c_k (4, 4) on ``level``: the normal
     equations (H = J^T W J, g = J^T W r = the gradient of the robust cost in a left twist,
-    the cost, inliers, residuals, the mask of the hard decisions taken at T_c_k) and
-    g(p) . g(p') (K,) of the nearest edges (what the consistency test reads). The hard
-    decisions of a pose are ``(system.mask, dots)``; ``newton_decrement(system)`` says how
-    far from stationary it is."""
+    the cost, inliers), and the hard decisions taken at T_c_k: the inlier mask (K,) and
+    g(p) . g(p') (K,) of the nearest edges (what the consistency test reads).
+    ``newton_decrement(system)`` says how far from stationary the pose is."""
     _check_options("unrolled", consistency, interpolation)
     spec = _Spec(config, consistency, interpolation)
     intr, mag = _as_arrays(kf, dist, intr, mag)
     data = _data_at(level, kf, dist, intr, mag)
-    T = jaxlie.SE3.from_matrix(T_c_k)
+    T = Rigid.from_matrix(jnp.asarray(T_c_k, dist[0].dtype))
     mask, dots = _decisions(T, params, data, kf, edge_map, level, spec)
-    return _system(T, params, data, mask, dots, kf.valid, level, spec), dots
+    return _system(T, params, data, mask, dots, kf.valid, level, spec), mask, dots
 
 
 def newton_decrement(system: LevelSystem) -> jnp.ndarray:

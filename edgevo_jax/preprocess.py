@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from .config import Config
+from .hostmem import aligned_empty
 from .interp import EdgeMap
 
 
@@ -74,12 +75,15 @@ def detect_edges(gray: np.ndarray, config: Config) -> tuple[np.ndarray, np.ndarr
 
 
 def distance_pyramid(level0: np.ndarray, num_levels: int) -> tuple[np.ndarray, ...]:
-    """Levels 1.. by halving with linear interpolation; distances divided by 2 per level."""
+    """Levels 1.. by halving with linear interpolation; distances divided by 2 per level
+    (64-byte aligned, see ``aligned_empty``)."""
     levels = [level0]
     for _ in range(1, num_levels):
         prev = levels[-1]
         h, w = prev.shape
-        levels.append(cv2.resize(prev, (w // 2, h // 2), interpolation=cv2.INTER_LINEAR) * 0.5)
+        out = cv2.resize(prev, (w // 2, h // 2), dst=aligned_empty((h // 2, w // 2), np.float32),
+                         interpolation=cv2.INTER_LINEAR)
+        levels.append(np.multiply(out, np.float32(0.5), out=out))
     return tuple(levels)
 
 
@@ -89,13 +93,17 @@ def direction_codes(pts: np.ndarray, grad: np.ndarray, shape: tuple[int, int]) -
     consistency gate); each empty pixel next to an edge takes a neighbour's code (a 3x3
     dilation), so that a lookup one pixel off the edge still finds it; 0 elsewhere."""
     h, w = shape
-    code = np.zeros((h, w), np.uint8)
-    if pts.shape[0]:
-        angle = np.arctan2(grad[:, 1], grad[:, 0])
-        q = np.round((angle + np.pi) * (254.0 / (2.0 * np.pi))).astype(np.int32) % 254
-        code[pts[:, 1], pts[:, 0]] = (1 + q).astype(np.uint8)
-    grown = cv2.dilate(code, np.ones((3, 3), np.uint8))
-    return np.where(code > 0, code, grown)
+    code = aligned_empty((h, w), np.uint8)
+    code.fill(0)
+    if not pts.shape[0]:
+        return code
+    angle = np.arctan2(grad[:, 1], grad[:, 0])
+    q = np.round((angle + np.pi) * (254.0 / (2.0 * np.pi))).astype(np.int32) % 254
+    values = (1 + q).astype(np.uint8)
+    code[pts[:, 1], pts[:, 0]] = values
+    grown = cv2.dilate(code, np.ones((3, 3), np.uint8), dst=aligned_empty((h, w), np.uint8))
+    grown[pts[:, 1], pts[:, 0]] = values  # edge pixels keep their own direction
+    return grown
 
 
 def preprocess(rgb: np.ndarray, depth: np.ndarray, config: Config) -> Frame:
@@ -104,8 +112,9 @@ def preprocess(rgb: np.ndarray, depth: np.ndarray, config: Config) -> Frame:
 
 
 def start_preprocess(rgb: np.ndarray, depth: np.ndarray, config: Config) -> PreprocessJob:
-    """The first half of ``preprocess``: edges found and the distance transform launched on
-    the worker thread. Do other work, then call ``.finish()`` for the Frame."""
+    """The first half of ``preprocess``: edges found, the distance fields launched on the
+    worker thread, the edges' gradients and depths gathered. Do other work, then call
+    ``.finish()`` for the Frame."""
     edges, gx, gy = detect_edges(to_gray(rgb), config)
     return PreprocessJob.start(edges, gx, gy, depth, config)
 
@@ -118,54 +127,62 @@ def frame_from_edges(
     return PreprocessJob.start(edges, gx, gy, depth, config).finish()
 
 
+def distance_fields(edges: np.ndarray, num_levels: int) -> tuple[np.ndarray, ...]:
+    """The distance-field pyramid of an edge mask (H, W) (non-zero on edges): the largest
+    part of the preprocessing, in OpenCV calls that release the GIL (it runs on the worker
+    thread while the caller's thread works)."""
+    h, w = edges.shape
+    if cv2.countNonZero(edges):
+        # a 5x5 chamfer L2 distance (within 0.08 px of the exact one inside the 5 px
+        # residual gate on TUM frames)
+        dist0 = cv2.distanceTransform(cv2.bitwise_not(edges), cv2.DIST_L2, cv2.DIST_MASK_5,
+                                      dst=aligned_empty((h, w), np.float32))
+    else:  # no edge at all: every distance is "far"; the tracker reports the frame lost
+        dist0 = aligned_empty((h, w), np.float32)
+        dist0.fill(float(h + w))
+    return distance_pyramid(dist0, num_levels)
+
+
 @dataclass(frozen=True)
 class PreprocessJob:
-    """A frame whose distance transform runs on the worker thread (it is half of the
-    preprocessing; OpenCV releases the GIL, so the caller's thread can work meanwhile)."""
+    """A frame whose edge pixels, gradients and depths are known and whose distance fields
+    (``distance_fields``) are being made on the worker thread."""
 
-    edges: np.ndarray
-    gx: np.ndarray
-    gy: np.ndarray
-    depth: np.ndarray
-    config: Config
     pts: np.ndarray  # (N, 2) int32 edge pixels in raster order
-    transform: Future | None
+    grad: np.ndarray  # (N, 2) normalised image gradients
+    mag: np.ndarray  # (N,) gradient magnitudes
+    depth: np.ndarray  # (N,) depth at the edge pixels (m, 0 = missing)
+    shape: tuple[int, int]
+    fields: Future
 
     @classmethod
     def start(cls, edges, gx, gy, depth, config: Config) -> PreprocessJob:
-        """Find the edge pixels and launch the distance transform."""
-        pts = cv2.findNonZero(edges)  # raster order
-        transform = None
-        if pts is not None:
-            # a 5x5 chamfer L2 distance (within 0.08 px of the exact one inside the 5 px
-            # residual gate on TUM frames)
-            transform = _worker().submit(
-                cv2.distanceTransform, cv2.bitwise_not(edges), cv2.DIST_L2, cv2.DIST_MASK_5)
-        pts = np.zeros((0, 2), np.int32) if pts is None else pts.reshape(-1, 2)
-        return cls(edges, gx, gy, depth, config, pts, transform)
-
-    def finish(self) -> Frame:
-        """Gather the edges' gradients and depths, wait for the transform, build the Frame."""
-        h, w = self.edges.shape
-        us, vs = self.pts[:, 0], self.pts[:, 1]
-        flat = vs * w + us
-        egx = np.take(self.gx.ravel(), flat).astype(np.float32)
-        egy = np.take(self.gy.ravel(), flat).astype(np.float32)
+        """Launch ``distance_fields`` on the worker thread, then find the edge pixels and
+        gather their gradients and depths."""
+        fields = _worker().submit(distance_fields, edges, config.num_levels)
+        h, w = edges.shape
+        found = cv2.findNonZero(edges)  # raster order
+        pts = np.zeros((0, 2), np.int32) if found is None else found.reshape(-1, 2)
+        flat = pts[:, 1] * w + pts[:, 0]
+        egx = np.take(gx.ravel(), flat).astype(np.float32)
+        egy = np.take(gy.ravel(), flat).astype(np.float32)
         mag = np.hypot(egx, egy)
         grad = np.stack([egx, egy], axis=-1) / np.maximum(mag, 1e-6)[:, None]
-        code = direction_codes(self.pts, grad, (h, w))
-        if self.transform is not None:
-            dist0 = self.transform.result()
-        else:  # no edge at all: every distance is "far"; the tracker reports the frame lost
-            dist0 = np.full((h, w), float(h + w), np.float32)
-        cfg = self.config
-        d = np.take(self.depth.ravel(), flat).astype(np.float32)
-        d = np.where(np.isfinite(d) & (d >= cfg.min_depth) & (d <= cfg.max_depth), d, 0.0)
+        d = np.take(depth.ravel(), flat).astype(np.float32)
+        d = np.where(np.isfinite(d) & (d >= config.min_depth) & (d <= config.max_depth), d, 0.0)
+        return cls(pts, grad.astype(np.float32), mag.astype(np.float32), d.astype(np.float32),
+                   (h, w), fields)
+
+    def finish(self) -> Frame:
+        """Make the direction codes (while the worker may still run), wait for the distance
+        fields and build the Frame."""
+        code = direction_codes(self.pts, self.grad, self.shape)
+        dist = self.fields.result()
         return Frame(
             edge_uv=self.pts.astype(np.float32),
-            edge_grad=grad.astype(np.float32),
-            edge_mag=mag.astype(np.float32),
-            edge_depth=d.astype(np.float32),
-            dist=distance_pyramid(dist0, cfg.num_levels),
-            edge_map=EdgeMap(dist0, code),
+            edge_grad=self.grad,
+            edge_mag=self.mag,
+            edge_depth=self.depth,
+            dist=dist,
+            edge_map=EdgeMap(dist[0], code),
         )

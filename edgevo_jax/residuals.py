@@ -112,4 +112,5 @@ def consistency_dots_at_level(
 
 
 def _dots(grad_k: jnp.ndarray, g_near: jnp.ndarray, found: jnp.ndarray) -> jnp.ndarray:
-    return jnp.where(found, jnp.sum(grad_k * g_near.astype(grad_k.dtype), axis=0), -1.0)
+    g_near = g_near.astype(grad_k.dtype)
+    return jnp.where(found, grad_k[0] * g_near[0] + grad_k[1] * g_near[1], -1.0)

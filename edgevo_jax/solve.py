@@ -18,7 +18,7 @@ import numpy as np
 
 from .camera import Intrinsics, unproject
 from .config import Config
-from .geometry import retract_left
+from .geometry import Rigid, rotation_translation
 from .interp import EdgeMap
 from .residuals import consistency_dots_at_level, residual_jacobian_grad, warp
 from .robust import EdgeWeighting, edge_weights, huber_cost, huber_weights
@@ -40,15 +40,17 @@ class KeyframeEdges(NamedTuple):
 class SolveKnobs(NamedTuple):
     """The numeric settings of the solve as arrays (a pytree), so that one compiled program
     serves many configurations (``batch.py`` vmaps over them): per level huber_delta (L,) and
-    max_residual (L,) in that level's pixels, iterations (L,) int32; eta () and step_tol ().
-    ``weighting``: the learnable per-edge weighting model (``robust.EdgeWeighting``, from
-    ``params.solve_knobs_of``), or None (the plain tracker; a None compiles without it)."""
+    max_residual (L,) in that level's pixels, iterations (L,) int32; eta (), step_tol () and
+    max_rejects () int32. ``weighting``: the learnable per-edge weighting model
+    (``robust.EdgeWeighting``, from ``params.solve_knobs_of``), or None (the plain tracker;
+    a None compiles without it)."""
 
     huber_delta: jnp.ndarray
     max_residual: jnp.ndarray
     eta: jnp.ndarray
     iterations: jnp.ndarray
     step_tol: jnp.ndarray
+    max_rejects: jnp.ndarray
     weighting: EdgeWeighting | None = None
 
 
@@ -60,6 +62,7 @@ def solve_knobs(config: Config) -> SolveKnobs:
         eta=np.asarray(config.eta, np.float32),
         iterations=np.asarray(config.iterations, np.int32),
         step_tol=np.asarray(config.step_tol, np.float32),
+        max_rejects=np.asarray(config.max_rejects, np.int32),
     )
 
 
@@ -71,17 +74,46 @@ def solve_structure(config: Config) -> Config:
     return Config(iterations=(10,) * n, huber_delta=(1.0,) * n, max_residual=(5.0,) * n)
 
 
-class LevelSystem(NamedTuple):
-    """Weighted normal equations at one pose: H = J^T W J (6, 6), g = J^T W r (6,), the
-    truncated robust cost (see ``normal_equations``), inlier count, residuals r (K,) and the
-    inlier mask (K,)."""
+#: Layout of ``LevelSystem.sums``: the upper triangle of H row by row (21), g (6), the robust
+#: cost, the inlier count and the sum of the inliers' residuals.
+NUM_SUMS = 30
+_H_INDEX = np.zeros((6, 6), np.int32)
+_H_INDEX[np.triu_indices(6)] = np.arange(21)
+_H_INDEX = np.maximum(_H_INDEX, _H_INDEX.T)
 
-    H: jnp.ndarray
-    g: jnp.ndarray
-    cost: jnp.ndarray
-    inliers: jnp.ndarray
-    r: jnp.ndarray
-    mask: jnp.ndarray
+
+class LevelSystem(NamedTuple):
+    """Weighted normal equations at one pose, as the NUM_SUMS sums over edges they are made
+    of (``sums``, one array, so that a Levenberg-Marquardt try selects one array, not six):
+    H = J^T W J (6, 6), g = J^T W r (6,), the truncated robust cost (see
+    ``normal_equations``), the inlier count and the sum of the inliers' residuals."""
+
+    sums: jnp.ndarray
+
+    @property
+    def H(self) -> jnp.ndarray:
+        """J^T W J (6, 6)."""
+        return jnp.take(self.sums, _H_INDEX)
+
+    @property
+    def g(self) -> jnp.ndarray:
+        """J^T W r (6,)."""
+        return self.sums[21:27]
+
+    @property
+    def cost(self) -> jnp.ndarray:
+        """The robust cost."""
+        return self.sums[27]
+
+    @property
+    def inliers(self) -> jnp.ndarray:
+        """The inlier count (float)."""
+        return self.sums[28]
+
+    @property
+    def residual_sum(self) -> jnp.ndarray:
+        """The sum of the inliers' residuals (px)."""
+        return self.sums[29]
 
 
 class TrackResult(NamedTuple):
@@ -106,7 +138,7 @@ def level_to_0(uv_l: jnp.ndarray, level: int) -> jnp.ndarray:
 
 
 def normal_equations(
-    T: jaxlie.SE3,
+    T: Rigid | jaxlie.SE3,
     pts_k: jnp.ndarray,
     kf: KeyframeEdges,
     field: jnp.ndarray,
@@ -132,6 +164,31 @@ def normal_equations(
         raise ValueError("the per-edge weighting model needs KeyframeEdges.mag")
     weight, slope = edge_weights(knobs.weighting, kf.mag, kf.rho, r, gate, level)
     return robust_system(r, J, mask, kf.valid, delta, gate, weight=weight, weight_slope=slope)
+
+
+def sum_rows(rows: list[jnp.ndarray]) -> jnp.ndarray:
+    """The sums of equally shaped arrays (K,) as one (len(rows),) array, from one variadic
+    reduction: XLA evaluates each edge's terms once and adds them in order, whatever the
+    batch size of a vmapped caller (a run gives the same result alone and in a batch, which
+    ``batch.py`` relies on; XLA's dots and vectorised sums do not, and its batched dots are
+    slow on CPU for thousands of edges)."""
+    return _sum_rows(tuple(rows))
+
+
+@jax.custom_jvp
+def _sum_rows(rows: tuple[jnp.ndarray, ...]) -> jnp.ndarray:
+    zero = jnp.zeros((), rows[0].dtype)
+    out = jax.lax.reduce(rows, (zero,) * len(rows),
+                         lambda a, b: tuple(x + y for x, y in zip(a, b, strict=True)), (0,))
+    return jnp.stack(out)
+
+
+@_sum_rows.defjvp
+def _sum_rows_jvp(primals, tangents):
+    # the sum is linear: its tangent is the sum of the tangents (plain sums, which JAX can
+    # transpose; its generic rule for a variadic reduce fails on symbolic zero tangents)
+    (rows,), (dots,) = primals, tangents
+    return _sum_rows(rows), jnp.stack([jnp.sum(t) for t in dots])
 
 
 def robust_system(
@@ -162,50 +219,87 @@ def robust_system(
     if reject is not None:
         inlier_cost = inlier_cost + reject * huber_cost(gate, delta)
     w = jnp.where(mask, w, 0.0)
-    Jw = J * w
-    g = Jw @ r
+    wr = w * r
     if weight_slope is not None:
-        g = g + J @ jnp.where(mask, weight_slope * huber_cost(r, delta), 0.0)
+        wr = wr + jnp.where(mask, weight_slope * huber_cost(r, delta), 0.0)
     outside = jnp.where(valid, huber_cost(gate, delta), 0.0)
-    cost = jnp.sum(jnp.where(mask, inlier_cost, outside))
-    # dots, not sums of products: XLA's dots give a run the same result whatever the batch
-    # size (its vectorised reductions do not), which batch.py's equality relies on
-    return LevelSystem(H=Jw @ J.T, g=g, cost=cost, inliers=jnp.sum(mask), r=r, mask=mask)
+    rows = [J[i] * w * J[j] for i in range(6) for j in range(i, 6)]
+    rows += [J[i] * wr for i in range(6)]
+    rows += [jnp.where(mask, inlier_cost, outside), mask.astype(r.dtype),
+             jnp.where(mask, r, 0.0)]
+    return LevelSystem(sum_rows(rows))
+
+
+def solve_spd(A: jnp.ndarray, B: jnp.ndarray) -> jnp.ndarray:
+    """A^-1 B for a symmetric positive definite A (n, n) and B (n, m): Gauss-Jordan
+    elimination without pivoting (stable for SPD matrices), a handful of fused kernels
+    where LAPACK's solve is several library calls (the solve's inner loop pays per kernel)."""
+    n = A.shape[0]
+    M = jnp.concatenate([A, B], axis=1)
+    rows = jnp.arange(n)
+    for k in range(n):
+        pivot = M[k] / M[k, k]
+        M = M - M[:, k:k + 1] * pivot[None, :] * (rows != k)[:, None]
+    return M[:, n:] / jnp.diagonal(M[:, :n])[:, None]
+
+
+def _trace6(H: jnp.ndarray) -> jnp.ndarray:
+    """The trace, added in a fixed order (see ``sum_rows``)."""
+    return H[0, 0] + H[1, 1] + H[2, 2] + H[3, 3] + H[4, 4] + H[5, 5]
 
 
 def damped_step(system: LevelSystem, lam: jnp.ndarray) -> jnp.ndarray:
     """Levenberg-Marquardt step xi = -(H + lam diag(H))^-1 g; zero when not finite."""
     H = system.H
     eye = jnp.eye(6, dtype=H.dtype)
-    A = H + lam * H * eye + 1e-9 * (jnp.trace(H) + 1.0) * eye
-    xi = -jnp.linalg.solve(A, system.g)
+    A = H + lam * H * eye + 1e-9 * (_trace6(H) + 1.0) * eye
+    xi = -solve_spd(A, system.g[:, None])[:, 0]
     ok = jnp.all(jnp.isfinite(xi)) & (system.inliers >= 6)
     return jnp.where(ok, xi, jnp.zeros_like(xi))
 
 
-def lm_iteration(
-    system_at: Callable[[jaxlie.SE3], LevelSystem],
-    T: jaxlie.SE3,
-    system: LevelSystem,
-    lam: jnp.ndarray,
-) -> tuple[jaxlie.SE3, LevelSystem, jnp.ndarray, jnp.ndarray]:
-    """One Levenberg-Marquardt try from pose T with its normal equations ``system``: the
-    damped step is kept when ``system_at`` says it lowers the robust cost; lam shrinks 10x
-    after a kept step and grows 10x after a rejected one. Returns the pose, its system, the
-    new lam and the step's norm (a rejected step this short only shrinks further)."""
-    xi = damped_step(system, lam)
-    T_new = retract_left(T, xi)
+class LMTry(NamedTuple):
+    """What one Levenberg-Marquardt try leaves: the pose, its system, the damping lam, the
+    norm of the step tried and how many tries in a row were rejected."""
+
+    T: Rigid
+    system: LevelSystem
+    lam: jnp.ndarray
+    step: jnp.ndarray
+    rejects: jnp.ndarray
+
+
+def lm_start(T: Rigid, system: LevelSystem) -> LMTry:
+    """The state before the first try from pose T with its system."""
+    dtype = system.sums.dtype
+    return LMTry(T, system, jnp.asarray(1e-4, dtype), jnp.asarray(jnp.inf, dtype),
+                 jnp.asarray(0, jnp.int32))
+
+
+def lm_iteration(system_at: Callable[[Rigid], LevelSystem], state: LMTry) -> LMTry:
+    """One Levenberg-Marquardt try: the damped step is kept when ``system_at`` says it lowers
+    the robust cost; lam shrinks 10x after a kept step and grows 10x after a rejected one."""
+    xi = damped_step(state.system, state.lam)
+    T_new = state.T.retract(xi)
     sys_new = system_at(T_new)
-    better = sys_new.cost < system.cost
+    better = sys_new.cost < state.system.cost
     T, system = jax.tree.map(
-        lambda a, b: jnp.where(better, a, b), (T_new, sys_new), (T, system)
+        lambda a, b: jnp.where(better, a, b), (T_new, sys_new), (state.T, state.system)
     )
-    lam = jnp.clip(jnp.where(better, lam * 0.1, lam * 10.0), 1e-6, 1e4)
-    return T, system, lam, jnp.linalg.norm(xi)
+    lam = jnp.clip(jnp.where(better, state.lam * 0.1, state.lam * 10.0), 1e-6, 1e4)
+    rejects = jnp.where(better, 0, state.rejects + 1)
+    return LMTry(T, system, lam, jnp.sqrt(sum(xi[i] * xi[i] for i in range(6))), rejects)
+
+
+def lm_continues(state: LMTry, knobs: SolveKnobs) -> jnp.ndarray:
+    """Whether a level tries again after ``state``: its step was at least ``step_tol`` and
+    fewer than ``max_rejects`` tries in a row were rejected (each rejection only grows lam
+    tenfold, the pose stays). The iteration budget is the caller's."""
+    return (state.step >= knobs.step_tol) & (state.rejects < knobs.max_rejects)
 
 
 def align_level(
-    T: jaxlie.SE3,
+    T: Rigid,
     pts_k: jnp.ndarray,
     kf: KeyframeEdges,
     field: jnp.ndarray,
@@ -213,38 +307,36 @@ def align_level(
     intr: Intrinsics,
     level: int,
     knobs: SolveKnobs,
-) -> tuple[jaxlie.SE3, LevelSystem]:
+) -> tuple[Rigid, LevelSystem]:
     """Levenberg-Marquardt on the Huber-weighted (Gauss-Newton) normal equations at one level;
     returns the pose and the normal equations at it.
 
     A step is kept only when it lowers the robust cost (the coarse, non-smooth distance fields
     make plain Gauss-Newton oscillate); lam shrinks 10x after a kept step and grows 10x after
-    a rejected one. lax.while_loop: fixed shapes, stop after ``knobs.iterations[level]`` tries
-    or once a step, kept or not, is shorter than ``knobs.step_tol``.
+    a rejected one. lax.while_loop: fixed shapes, at most ``knobs.iterations[level]`` tries,
+    stopped earlier by ``lm_continues``.
     """
 
     def system_at(T):
         return normal_equations(T, pts_k, kf, field, edge_map, intr, level, knobs)
 
-    def cond(state):
-        i, _, _, _, step = state
-        return (i < knobs.iterations[level]) & (step >= knobs.step_tol)
+    def cond(carry):
+        i, state = carry
+        return (i < knobs.iterations[level]) & lm_continues(state, knobs)
 
-    def body(state):
-        i, T, sys, lam, _ = state
-        T, sys, lam, step = lm_iteration(system_at, T, sys, lam)
-        return i + 1, T, sys, lam, step
+    def body(carry):
+        i, state = carry
+        return i + 1, lm_iteration(system_at, state)
 
-    dtype = pts_k.dtype
-    init = (jnp.asarray(0), T, system_at(T), jnp.asarray(1e-4, dtype), jnp.asarray(jnp.inf, dtype))
-    _, T, system, _, _ = jax.lax.while_loop(cond, body, init)
-    return T, system
+    _, state = jax.lax.while_loop(cond, body, (jnp.asarray(0), lm_start(T, system_at(T))))
+    return state.T, state.system
 
 
 def rms_flow(uv_from: jnp.ndarray, uv_to: jnp.ndarray, mask: jnp.ndarray) -> jnp.ndarray:
     """Root mean squared pixel displacement (2, K) -> scalar over the masked points."""
-    sq = jnp.sum((uv_to - uv_from) ** 2, axis=0)
-    return jnp.sqrt(jnp.sum(jnp.where(mask, sq, 0.0)) / jnp.maximum(jnp.sum(mask), 1))
+    d = uv_to - uv_from
+    sq, n = sum_rows([jnp.where(mask, d[0] * d[0] + d[1] * d[1], 0.0), mask.astype(d.dtype)])
+    return jnp.sqrt(sq / jnp.maximum(n, 1.0))
 
 
 def track(
@@ -264,14 +356,14 @@ def track(
     """
     knobs = solve_knobs(config) if knobs is None else knobs
     pts_k = unproject(intr, kf.uv, kf.rho)
-    T = jaxlie.SE3.from_matrix(T_init)
+    T = Rigid.from_matrix(jnp.asarray(T_init, pts_k.dtype))
     for level in reversed(range(config.num_levels)):
         T, final = align_level(T, pts_k, kf, dist[level], edge_map, intr, level, knobs)
     return track_result(T, final, pts_k, kf, dist[0].shape, intr)
 
 
 def track_result(
-    T: jaxlie.SE3,
+    T: Rigid,
     final: LevelSystem,
     pts_k: jnp.ndarray,
     kf: KeyframeEdges,
@@ -281,7 +373,7 @@ def track_result(
     """The TrackResult of an alignment that ended at pose T with level-0 normal equations
     ``final``: covariance, inlier statistics and the optical flow of the visible edges;
     shape (H, W) of level 0."""
-    H = final.H + 1e-9 * (jnp.trace(final.H) + 1.0) * jnp.eye(6, dtype=final.H.dtype)
+    H = final.H + 1e-9 * (_trace6(final.H) + 1.0) * jnp.eye(6, dtype=final.H.dtype)
     # optical flow of the edges that stay in view, with and without rotation (keyframe rule)
     uv_c, pts_c = warp(intr, T, pts_k)
     h, w = shape
@@ -289,12 +381,14 @@ def track_result(
         kf.valid & (pts_c[2] > 1e-6) & (uv_c[0] >= 0) & (uv_c[0] <= w - 1)
         & (uv_c[1] >= 0) & (uv_c[1] <= h - 1)
     )
-    uv_t, _ = warp(intr, jaxlie.SE3.from_translation(T.translation()), pts_k)
+    R, t = rotation_translation(T)
+    uv_t, _ = warp(intr, Rigid(jnp.eye(3, dtype=R.dtype), t), pts_k)
+    inliers = final.inliers
     return TrackResult(
         T_c_k=T.as_matrix(),
-        covariance=jnp.linalg.inv(H),
-        inliers=final.inliers,
-        mean_residual=jnp.sum(jnp.where(final.mask, final.r, 0.0)) / jnp.maximum(final.inliers, 1),
+        covariance=solve_spd(H, jnp.eye(6, dtype=H.dtype)),
+        inliers=inliers.astype(jnp.int32),
+        mean_residual=final.residual_sum / jnp.maximum(inliers, 1.0),
         flow=rms_flow(kf.uv, uv_c, visible),
         flow_t=rms_flow(kf.uv, uv_t, visible),
         visible=jnp.sum(visible),

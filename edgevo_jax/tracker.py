@@ -18,6 +18,7 @@ from .camera import Intrinsics
 from .chunk import track_chunk_jit, track_next_jit
 from .config import Config
 from .geometry import inverse_np, orthonormalise_np, scale_motion_np
+from .hostmem import aligned_array, aligned_stack
 from .interp import stack_edge_maps
 from .keyframes import keyframe_reason
 from .local_map import LocalMap
@@ -135,6 +136,7 @@ class Odometry:
         if params is not None:
             self.knobs = solve_knobs_of(params, config)
             self._reobs_a = float(np.asarray(params.reobs_a, np.float64))
+        self._constants_key: tuple[float, ...] | None = None  # see _device_constants
         # the last two poses relative to the keyframe, A = T_(i-1)_kf and B = T_(i-2)_kf
         # (float32): the device predicts the next one from them (chunk.predict)
         self._rel: tuple[np.ndarray, np.ndarray] | None = None
@@ -169,8 +171,9 @@ class Odometry:
         if self._kf is None:
             return _Pending(frame, timestamp, self._initial, None, preprocess_ms, t_submit)
         A, B = self._rel
+        intr, knobs = self._device_constants()
         output = track_next_jit(self._kf.edges, frame.dist, frame.edge_map, A, B,
-                                self.intrinsics, self.knobs, config=self._static)
+                                intr, knobs, config=self._static)
         return _Pending(frame, timestamp, self._predict(), output, preprocess_ms, t_submit)
 
     def complete(self, pending: _Pending) -> FrameResult:
@@ -223,7 +226,8 @@ class Odometry:
         if not 0 < len(frames) <= size:
             raise ValueError(f"a chunk takes 1 to {size} frames, got {len(frames)}")
         frames = list(frames) + [frames[-1]] * (size - len(frames))
-        dist = tuple(np.stack([f.dist[lv] for f in frames]) for lv in range(len(frames[0].dist)))
+        dist = tuple(aligned_stack([f.dist[lv] for f in frames])
+                     for lv in range(len(frames[0].dist)))
         ng = stack_edge_maps([f.edge_map for f in frames])
         kf, A, B, intr, knobs = self.chunk_inputs()
         return track_chunk_jit(kf, dist, ng, A, B, intr, knobs, config=self._static)
@@ -316,7 +320,8 @@ class Odometry:
             return "non-finite pose"
         if int(res.inliers) < self.config.min_inliers:
             return f"too few inliers ({int(res.inliers)})"
-        cond = np.linalg.cond(cov)
+        eig = np.linalg.eigvalsh(0.5 * (cov + cov.T))  # symmetric: cheaper than cond's SVD
+        cond = eig[-1] / eig[0] if eig[0] > 0 else np.inf
         if not cond <= self.config.max_covariance_condition:
             return f"covariance ill-conditioned (condition {cond:.2g})"
         return None
@@ -379,6 +384,16 @@ class Odometry:
             raise ValueError(f"timestamp must be finite, got {timestamp}")
         self._shape = depth.shape
 
+    def _device_constants(self) -> tuple[Intrinsics, object]:
+        """Intrinsics and solve knobs as device arrays, made once (and again when the local
+        map refines the intrinsics): a jitted call converts each host argument anew."""
+        key = tuple(self.intrinsics)
+        if self._constants_key != key:
+            self._constants = (Intrinsics(*jnp.asarray(key, jnp.float32)),
+                               jax.device_put(self.knobs))
+            self._constants_key = key
+        return self._constants
+
     def _predict(self) -> np.ndarray:
         """Constant velocity: T_w_pred = T_w_last (T_w_prev^-1 T_w_last)."""
         if len(self._poses) < 2:
@@ -388,7 +403,7 @@ class Odometry:
 
     def _relative_from_world(self) -> tuple[np.ndarray, np.ndarray]:
         """A, B (float32) from the last two world poses and the keyframe's (float64)."""
-        rel = [(inverse_np(p) @ self._kf.pose).astype(np.float32) for p in self._poses]
+        rel = [aligned_array(inverse_np(p) @ self._kf.pose, np.float32) for p in self._poses]
         return rel[-1], rel[0]
 
     def _push(self, pose: np.ndarray) -> None:

@@ -5,6 +5,7 @@ Usage::
 
     python scripts/check_implicit.py [SEQ_DIR] [--pairs 1,2,5] [--num-edges 128]
                                      [--iterations 20,5,5] [--refine 3] [--eps 1e-4]
+                                     [--max-rejects 1000]
                                      [--out-json docs/learning/implicit_check.json]
 
 SEQ_DIR defaults to the bundled fr1/xyz clip. Frame 0 is the keyframe (``--num-edges`` edges,
@@ -13,7 +14,8 @@ spg, seed 0); each frame k of ``--pairs`` is tracked against it from the identit
 level-0 parameter has an effect: the weighting model's weights are nonzero), under four
 variants: the plain computation (bilinear fields, no refinement: what the tracker does),
 bicubic fields, refinement rounds, and both. Config: ``--iterations`` LM tries per level
-(level 0 first), no early stop (step_tol 0).
+(level 0 first), no early stop (step_tol 0, ``--max-rejects`` 1000: the tracker's default
+of 3 rejected tries in a row stops a level earlier).
 
 For each pair and variant it reports the cost at the final pose, the Newton decrement
 g^T H^-1 g there (``learn.newton_decrement`` of ``learn.level_system``: ~0 at a stationary
@@ -67,6 +69,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--num-edges", type=int, default=128)
     p.add_argument("--iterations", default="20,5,5", help="LM tries per level, level 0 first")
     p.add_argument("--refine", type=int, default=3, help="refinement rounds when on")
+    p.add_argument("--max-rejects", type=int, default=1000,
+                   help="LM stops a level after this many rejected tries in a row")
     p.add_argument("--eps", type=float, default=1e-4, help="central-difference step")
     p.add_argument("--out-json", type=Path, default=Path("docs/learning/implicit_check.json"))
     return p.parse_args(argv)
@@ -102,9 +106,10 @@ def _pose(v, kf, dist, em, intr, config, interpolation, refine, adjoint):
 def _forward(v, kf, dist, em, T_gt, intr, config, interpolation, refine):
     """Pose loss, the hard decisions and the Newton decrement at the final pose, the cost."""
     T = _pose(v, kf, dist, em, intr, config, interpolation, refine, "implicit")
-    system, dots = level_system(kf, dist, em, T, intr, unflatten(v, nondefault_params(config)),
-                                config, interpolation=interpolation)
-    return pose_loss(T, T_gt), system.mask, dots, newton_decrement(system), system.cost
+    system, mask, dots = level_system(kf, dist, em, T, intr,
+                                      unflatten(v, nondefault_params(config)), config,
+                                      interpolation=interpolation)
+    return pose_loss(T, T_gt), mask, dots, newton_decrement(system), system.cost
 
 
 @partial(jax.jit, static_argnames=("config", "interpolation", "refine"))
@@ -146,7 +151,8 @@ def main(argv: list[str] | None = None) -> int:
     jax.config.update("jax_enable_x64", True)
     seq = load_sequence(args.sequence)
     iterations = tuple(int(x) for x in args.iterations.split(","))
-    config = Config(num_edges=args.num_edges, iterations=iterations, step_tol=0.0)
+    config = Config(num_edges=args.num_edges, iterations=iterations, step_tol=0.0,
+                    max_rejects=args.max_rejects)
     frame0 = preprocess(*seq.load_frame(0), config)
     edges = keyframe_edges(frame0, config, seed=0, intr=seq.intrinsics)
     kf = KeyframeEdges(*(jnp.asarray(a, jnp.float64) if a.dtype.kind == "f" else jnp.asarray(a)
@@ -172,6 +178,7 @@ def main(argv: list[str] | None = None) -> int:
                   + (f", no effect: {', '.join(r['no_effect'])}" if r["no_effect"] else ""),
                   flush=True)
     report = {"sequence": seq.name, "num_edges": args.num_edges, "iterations": iterations,
+              "max_rejects": args.max_rejects,
               "eps": args.eps, "dtype": "float64", "consistency": "soft",
               "params": {k: np.asarray(v).tolist() for k, v in
                          zip(Params._fields, nondefault_params(config), strict=True)},
