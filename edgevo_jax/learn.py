@@ -36,9 +36,10 @@ Two adjoints, one switch:
   ~0 (relative to the cost). The plain computation rarely gets there on real frames: LM
   stops on a bilinear kink or against a jump of the consistency test (decrement ~0.2 for a
   cost of ~60 on a bundled pair) and the implicit gradient is then an approximation (up to
-  several times off on bundled pairs). With bicubic fields, ``refine=3`` and float64, on two
+  several times off on bundled pairs). With bicubic fields, ``refine=3``, ``step_tol=0`` and
+  float64, on two
   of three bundled pairs the decrement falls to ~1e-25 and the implicit gradient equals
-  central differences to better than 1e-5 relative and the unrolled one to ~1e-11
+  central differences to better than 1e-5 relative and the unrolled one to 1e-6
   (``tests/test_learn.py``, ``scripts/check_implicit.py``); the parameters that only act on
   coarse levels (``log_huber[1:]``, the level feature's weight: that feature is 0 at level
   0) and ``reobs_a`` then have no effect at all. On the third pair (5 frames apart) the
@@ -328,8 +329,10 @@ def track_differentiable(
     "bicubic" (``interp.bicubic_with_grad``: C1, the cost has a gradient everywhere).
     ``refine``: rounds of level-0 refinement after the coarse-to-fine solve; each holds the
     hard decisions taken at its start for ``config.iterations[0]`` LM tries (a step is also
-    kept when it shrinks the gradient without raising the cost beyond rounding), then takes
-    them again (module docstring: with "bicubic", float64 and a few rounds the pose is a
+    kept when it shrinks the gradient without raising the cost beyond rounding; a round stops
+    early on ``config.step_tol``: set it to 0, the default 1e-5 leaves the pose ~1e-6 from
+    stationary), then takes them again (module docstring: with "bicubic", float64, step_tol
+    0 and a few rounds the pose is a
     stationary point of its own decisions, where the implicit adjoint is exact; the rounds
     can also cycle between decision sets: ``newton_decrement`` tells).
     ``consistency="hard"`` with ``Params.default(config)``, bilinear and no refinement runs
