@@ -594,10 +594,19 @@ def refine(
 
 
 def remove_keyframe(problem: WindowProblem, index: int) -> WindowProblem:
-    """The window without keyframe ``index`` (static): the others keep their order."""
-    keep = np.array([k for k in range(problem.poses.shape[0]) if k != index])
+    """The window without keyframe ``index`` (static): the others keep their order. Slices,
+    not a gather: on the CPU, gathering the (n, H, W) fields costs ~5x a copy (~15 ms per
+    keyframe outside jit, as the local map calls it)."""
+    n = problem.poses.shape[0]
+    index = range(n)[index]  # IndexError outside the window; negative counts from the end
+
+    def without(x):
+        if index == 0:
+            return x[1:]
+        return x[:-1] if index == n - 1 else jnp.concatenate([x[:index], x[index + 1:]])
+
     return WindowProblem(*(a if name == "intrinsics" or a is None
-                           else jax.tree.map(lambda x: x[keep], a)
+                           else jax.tree.map(without, a)
                            for name, a in zip(WindowProblem._fields, problem, strict=True)))
 
 
