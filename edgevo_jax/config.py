@@ -40,10 +40,17 @@ weights the paper adopts):
   an edge at a depth step is an occluding contour, which slides over the object as the
   camera moves, or carries the other side's depth; its point is not fixed, and on fr3_teddy
   such edges alone shrink the window's translations by ~3 % (README, local mapping).
-  The test: the sensor's inverse depth 1-3 px to either side along the edge's gradient is
+  The test: the sensor's inverse depth 1-5 px to either side along the edge's gradient is
   planar (second difference) within 0.0105 / m = 3 sqrt(6) 1.425e-3 / m, three standard
   deviations of the second difference of three samples with Khoshelham and Elberink's
   disparity noise (a plane of any slant passes: inverse depth is affine in the pixels).
+  5 px: a PrimeSense sensor matches its pattern over 9 x 9 pixel windows (Konolige and
+  Mihelich's technical notes on the Kinect), so a depth step spreads up to 4 px around
+  where it is, plus a pixel of Canny localisation; around the shared clips' colour edges
+  the depth steps pile up within 5 px (fr3_teddy), 4 px (fr1_desk), 9 px (fr1_xyz)
+  (``scripts/depth_step_offsets.py``). On fr3_teddy 3 px left 0.8 % of the window's
+  translations short (similarity scale 1.008; 5 px: 1.005); 8 px leaves too few edges
+  (the 700-frame pingpong of fr3_teddy: 12.0 against 8.8 mm).
 """
 
 from __future__ import annotations
@@ -99,6 +106,7 @@ class Config:
     drop_visible_ratio: float = 0.05  # a keyframe with fewer edges in view of the newest goes
     mapping_depth_sigma: float = 0.01  # 1/m: the sensor's inverse depth as a prior (0: none)
     activation_depth_step: float = 0.0105  # 1/m: planarity of the depth across an edge (0: off)
+    activation_depth_reach: int = 5  # px to either side of an edge that the depth test reads
     # --- determinism ---
     seed: int = 0
 
@@ -124,7 +132,8 @@ class Config:
             raise ValueError("Config.window_size must be at least 3 (the newest two stay)")
         if not self.activation_depth_step >= 0:
             raise ValueError("Config.activation_depth_step must be >= 0 (0: no depth test)")
-        for name in ("active_per_keyframe", "activation_cell", "mapping_iterations"):
+        for name in ("active_per_keyframe", "activation_cell", "mapping_iterations",
+                     "activation_depth_reach"):
             if getattr(self, name) < 1:
                 raise ValueError(f"Config.{name} must be positive")
 

@@ -83,7 +83,7 @@ class _WindowKeyframe:
 
 
 def depth_continuous(depth: np.ndarray, uv: np.ndarray, grad: np.ndarray, *,
-                     max_step: float, reach: int = 3) -> np.ndarray:
+                     max_step: float, reach: int) -> np.ndarray:
     """(K,) bool: edges (pixels uv (2, K), normalised gradients grad (2, K)) whose sensor
     depth is continuous across them: at 1..``reach`` px to either side along the gradient
     and at the edge pixel itself the depth (metres, (H, W), 0 or NaN = missing) is present
@@ -204,8 +204,9 @@ class LocalMap:
         uv, rho, grad, valid = _candidate_slots(edges, cfg.num_edges)
         activatable = valid
         if cfg.activation_depth_step > 0 and frame.depth is not None:
-            activatable = valid & depth_continuous(frame.depth, uv, grad,
-                                                   max_step=cfg.activation_depth_step)
+            activatable = valid & depth_continuous(
+                frame.depth, uv, grad, max_step=cfg.activation_depth_step,
+                reach=cfg.activation_depth_reach)
         new = _WindowKeyframe(
             pose=np.asarray(pose, np.float64), uv=uv, rho=rho, grad=grad, valid=valid,
             dist0=jnp.asarray(frame.dist[0]), edge_map=jax.tree.map(jnp.asarray, frame.edge_map),
