@@ -23,13 +23,34 @@ weights the paper adopts):
   without rotation) and w1 = 1/50, w2 = 1/25 px^-1: DSO's 0.02 / 0.04 weights, i.e. a new keyframe
   after ~50 px of general or ~25 px of translational flow; correspondences under 30 % of their
   running average; 1 s since the last keyframe (paper).
-- Local mapping: a window of 6 keyframes (paper: 5-7), activation per 20 px cell with
+- Local mapping, on (the paper's method; on fr3_teddy_first200 it lowers the ATE from 8.6 to
+  6.7 mm over selection seeds 0-8, on a 700-frame pingpong of it from 19.3 to 8.4 mm, and
+  costs 60-95 ms per keyframe on a 2-core CPU, not the frames: README, local mapping):
+  a window of 6 keyframes (paper: 5-7), activation per 20 px cell with
   gradients within 30 degrees (paper); 256 active edges per keyframe (half the tracked ones:
   n A = 1536 inverse depths keep one LM try at a few ms); 5 pose-only then 5 joint LM tries
   per keyframe; DSO's rule of dropping a keyframe with under 5 % of its points in view.
   The depth sensor's inverse depth is a measurement of each edge (sigma 0.01 / m: the
   Kinect's disparity noise, ~1.4e-3 / m by Khoshelham and Elberink 2012, is constant in
-  inverse depth; edge pixels sit at depth discontinuities, so it is inflated ~7x).
+  inverse depth; an edge's depth pixel sits a pixel or two off the edge (the depth image's
+  registration to the colour one), which on a slanted surface adds ~2e-3 / m per pixel,
+  so it is inflated ~7x). On fr3_teddy, depths held fixed (sigma -> 0) give the same ATE
+  as 0.01 (6.7 mm over seeds 0-3); 0.03 is worse (7.9 mm): the depths absorb pose errors.
+  Only edges whose depth is continuous across them join the window (not in the paper):
+  an edge at a depth step is an occluding contour, which slides over the object as the
+  camera moves, or carries the other side's depth; its point is not fixed, and on fr3_teddy
+  such edges alone shrink the window's translations by ~3 % (README, local mapping).
+  The test: the sensor's inverse depth 1-5 px to either side along the edge's gradient is
+  planar (second difference) within 0.0105 / m = 3 sqrt(6) 1.425e-3 / m, three standard
+  deviations of the second difference of three samples with Khoshelham and Elberink's
+  disparity noise (a plane of any slant passes: inverse depth is affine in the pixels).
+  5 px: a PrimeSense sensor matches its pattern over 9 x 9 pixel windows (Konolige and
+  Mihelich's technical notes on the Kinect), so a depth step spreads up to 4 px around
+  where it is, plus a pixel of Canny localisation; around the shared clips' colour edges
+  the depth steps pile up within 5 px (fr3_teddy), 4 px (fr1_desk), 9 px (fr1_xyz)
+  (``scripts/depth_step_offsets.py``). On fr3_teddy 3 px left 0.8 % of the window's
+  translations short (similarity scale 1.008; 5 px: 1.005); 8 px leaves too few edges
+  (the 700-frame pingpong of fr3_teddy: 12.0 against 8.8 mm).
 """
 
 from __future__ import annotations
@@ -75,7 +96,7 @@ class Config:
     kf_min_inlier_ratio: float = 0.3
     kf_max_interval_s: float = 1.0
     # --- local mapping (local_map.py) ---
-    mapping: bool = False  # the sliding window of keyframes (off: see README, known limits)
+    mapping: bool = True  # the sliding window of keyframes (README, local mapping)
     window_size: int = 6  # keyframes (paper: 5-7)
     active_per_keyframe: int = 256  # active edge slots each keyframe brings to the window
     activation_cell: int = 20  # px (paper)
@@ -84,6 +105,8 @@ class Config:
     mapping_intrinsics: bool = False  # refine fx, fy, cx, cy in the window, track with them
     drop_visible_ratio: float = 0.05  # a keyframe with fewer edges in view of the newest goes
     mapping_depth_sigma: float = 0.01  # 1/m: the sensor's inverse depth as a prior (0: none)
+    activation_depth_step: float = 0.0105  # 1/m: planarity of the depth across an edge (0: off)
+    activation_depth_reach: int = 5  # px to either side of an edge that the depth test reads
     # --- determinism ---
     seed: int = 0
 
@@ -107,7 +130,10 @@ class Config:
             raise ValueError("Config needs 0 < min_depth < max_depth")
         if self.window_size < 3:
             raise ValueError("Config.window_size must be at least 3 (the newest two stay)")
-        for name in ("active_per_keyframe", "activation_cell", "mapping_iterations"):
+        if not self.activation_depth_step >= 0:
+            raise ValueError("Config.activation_depth_step must be >= 0 (0: no depth test)")
+        for name in ("active_per_keyframe", "activation_cell", "mapping_iterations",
+                     "activation_depth_reach"):
             if getattr(self, name) < 1:
                 raise ValueError(f"Config.{name} must be positive")
 

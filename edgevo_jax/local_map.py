@@ -14,7 +14,10 @@ On a new keyframe (``LocalMap.add_keyframe``):
 2. The new keyframe joins; the tracked edges of the earlier ones are re-projected into it
    (its level-0 distance field and nearest-edge gradients): each edge seen there under the
    residual gate and with consistent gradients counts one more track, and edges are activated
-   per ``activation_cell`` cell by the three rules of ``activation.activate``.
+   per ``activation_cell`` cell by the three rules of ``activation.activate``. Only edges
+   whose sensor depth is continuous across them can be activated (``depth_continuous``):
+   an edge on a depth step is an occluding contour (it slides over the object when the
+   camera moves) or carries the far side's depth, so no fixed point explains its residuals.
 3. With a full window: ``mapping.refine`` moves the poses, the active inverse depths and
    (``mapping_intrinsics``) the intrinsics, the oldest keyframe held fixed; each keyframe keeps
    its ``active_per_keyframe`` longest-tracked active edges in the problem (fixed shapes: one
@@ -69,12 +72,40 @@ class _WindowKeyframe:
     active: np.ndarray = field(default=None)  # type: ignore[assignment]
     track: np.ndarray = field(default=None)  # type: ignore[assignment]
     rho_sensor: np.ndarray = field(default=None)  # type: ignore[assignment]
+    activatable: np.ndarray = field(default=None)  # type: ignore[assignment]  # valid, continuous
 
     def __post_init__(self) -> None:
         k = self.rho.shape[0]
         self.rho_sensor = self.rho.copy() if self.rho_sensor is None else self.rho_sensor
         self.active = np.zeros(k, bool) if self.active is None else self.active
         self.track = np.zeros(k, np.int32) if self.track is None else self.track
+        self.activatable = self.valid.copy() if self.activatable is None else self.activatable
+
+
+def depth_continuous(depth: np.ndarray, uv: np.ndarray, grad: np.ndarray, *,
+                     max_step: float, reach: int) -> np.ndarray:
+    """(K,) bool: edges (pixels uv (2, K), normalised gradients grad (2, K)) whose sensor
+    depth is continuous across them: at 1..``reach`` px to either side along the gradient
+    and at the edge pixel itself the depth (metres, (H, W), 0 or NaN = missing) is present
+    and its inverse is planar, |rho(p + s g) + rho(p - s g) - 2 rho(p)| <= ``max_step``
+    (1/m) for every s. Inverse depth is affine in the pixels on any plane, so a slanted
+    surface passes and a step (an occluding contour, or a pixel that took the far side's
+    depth) fails; pixels outside the image count as missing."""
+    h, w = depth.shape
+
+    def rho_at(s: float) -> np.ndarray:
+        u = np.round(uv[0] + s * grad[0]).astype(np.int64)
+        v = np.round(uv[1] + s * grad[1]).astype(np.int64)
+        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        z = depth[np.clip(v, 0, h - 1), np.clip(u, 0, w - 1)].astype(np.float64)
+        ok = inside & np.isfinite(z) & (z > 0)
+        return np.where(ok, 1.0 / np.where(ok, z, 1.0), np.nan)
+
+    r0 = rho_at(0.0)
+    planar = np.isfinite(r0)
+    for s in range(1, reach + 1):
+        planar &= np.abs(rho_at(s) + rho_at(-s) - 2.0 * r0) <= max_step  # NaN: False
+    return planar
 
 
 def mapping_config(config: Config) -> MappingConfig:
@@ -107,7 +138,8 @@ def _activation_step(intr, T_new_host, uv, rho, grad, valid, active, track, fiel
                      nearest_new, *, width, height, cell, max_angle_deg, gate):
     """For (h, K) host edges re-projected into the new keyframe (T_new_host (h, 4, 4)): the
     track counts, one more where an edge is seen again there (under the gate, gradients
-    within the angle), and the activation mask over the valid edges not active yet."""
+    within the angle), and the activation mask over the edges not active yet; ``valid`` is
+    each host's ``activatable`` mask (valid slots on continuous depth)."""
     def one(T, uv_h, rho_h, grad_h):
         pts = unproject(intr, uv_h, rho_h)
         return reproject(intr, jaxlie.SE3.from_matrix(T), pts, grad_h, field_new, nearest_new)
@@ -170,9 +202,15 @@ class LocalMap:
         if len(self.window) == cfg.window_size:
             self._drop(pose)
         uv, rho, grad, valid = _candidate_slots(edges, cfg.num_edges)
+        activatable = valid
+        if cfg.activation_depth_step > 0 and frame.depth is not None:
+            activatable = valid & depth_continuous(
+                frame.depth, uv, grad, max_step=cfg.activation_depth_step,
+                reach=cfg.activation_depth_reach)
         new = _WindowKeyframe(
             pose=np.asarray(pose, np.float64), uv=uv, rho=rho, grad=grad, valid=valid,
-            dist0=jnp.asarray(frame.dist[0]), edge_map=jax.tree.map(jnp.asarray, frame.edge_map))
+            dist0=jnp.asarray(frame.dist[0]), edge_map=jax.tree.map(jnp.asarray, frame.edge_map),
+            activatable=activatable)
         if self.prior is not None:
             self.prior = append_keyframe_to_prior(self.prior, jnp.asarray(new.pose, jnp.float32))
         self._activate(new)
@@ -192,7 +230,7 @@ class LocalMap:
         T = self._pad_hosts(T, np.eye(4, dtype=np.float32))
         height, width = self.shape
         track, act = _activation_jit(
-            self.camera, T, hosts["uv"], hosts["rho"], hosts["grad"], hosts["valid"],
+            self.camera, T, hosts["uv"], hosts["rho"], hosts["grad"], hosts["activatable"],
             hosts["active"], hosts["track"], new.dist0, new.edge_map,
             width=width, height=height, cell=self.config.activation_cell,
             max_angle_deg=float(self.config.activation_max_angle_deg),
@@ -301,7 +339,7 @@ class LocalMap:
 
     def _stack_hosts(self) -> dict[str, np.ndarray]:
         out = {}
-        for name, fill in (("uv", 0.0), ("rho", 1.0), ("grad", 0.0), ("valid", False),
+        for name, fill in (("uv", 0.0), ("rho", 1.0), ("grad", 0.0), ("activatable", False),
                            ("active", False), ("track", 0)):
             a = np.stack([getattr(kf, name) for kf in self.window])
             out[name] = self._pad_hosts(a, np.full(a.shape[1:], fill, a.dtype))

@@ -28,7 +28,10 @@ pose of keyframe ``gauge_index`` (default 0, the oldest) fixed, and with ``fix_s
 every candidate back along the exact scale orbit (about that keyframe's centre, which leaves
 every residual unchanged) so that the geometric mean of the active inverse depths stays that
 of the initial estimate (the depth sensor's scale). A first-order projection of the steps
-is not enough: each accepted step adds its second-order term, and the scale drifts.
+is not enough: each accepted step adds its second-order term, and the scale drifts. With a
+depth prior (``depth_prior_sigma``) the sensor measures the scale and it is no gauge; the
+restoration then only keeps the window's scale where it was (on fr3_teddy with or without
+it: 6.66 / 6.74 mm ATE over selection seeds 0-8).
 """
 
 from __future__ import annotations
@@ -591,10 +594,19 @@ def refine(
 
 
 def remove_keyframe(problem: WindowProblem, index: int) -> WindowProblem:
-    """The window without keyframe ``index`` (static): the others keep their order."""
-    keep = np.array([k for k in range(problem.poses.shape[0]) if k != index])
+    """The window without keyframe ``index`` (static): the others keep their order. Slices,
+    not a gather: on the CPU, gathering the (n, H, W) fields costs ~5x a copy (~15 ms per
+    keyframe outside jit, as the local map calls it)."""
+    n = problem.poses.shape[0]
+    index = range(n)[index]  # IndexError outside the window; negative counts from the end
+
+    def without(x):
+        if index == 0:
+            return x[1:]
+        return x[:-1] if index == n - 1 else jnp.concatenate([x[:index], x[index + 1:]])
+
     return WindowProblem(*(a if name == "intrinsics" or a is None
-                           else jax.tree.map(lambda x: x[keep], a)
+                           else jax.tree.map(without, a)
                            for name, a in zip(WindowProblem._fields, problem, strict=True)))
 
 

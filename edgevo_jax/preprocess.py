@@ -30,7 +30,8 @@ class Frame:
     image gradient; edge_mag (N,) Sobel L2 magnitude; edge_depth (N,) metres (0 = missing);
     dist: one float32 distance field per level, (H / 2**l, W / 2**l), in that level's pixels;
     edge_map: ``interp.EdgeMap`` (level-0 field and (H, W) uint8 direction codes), from
-    which the device finds the nearest edge's gradient.
+    which the device finds the nearest edge's gradient; depth: the (H, W) depth image in
+    metres it was made from (a reference, not a copy; the local map reads it at keyframes).
     """
 
     edge_uv: np.ndarray
@@ -39,6 +40,7 @@ class Frame:
     edge_depth: np.ndarray
     dist: tuple[np.ndarray, ...]
     edge_map: EdgeMap
+    depth: np.ndarray | None = None
 
     @property
     def num_edges(self) -> int:
@@ -154,6 +156,7 @@ class PreprocessJob:
     depth: np.ndarray  # (N,) depth at the edge pixels (m, 0 = missing)
     shape: tuple[int, int]
     fields: Future
+    depth_image: np.ndarray | None = None  # (H, W) metres, a reference (Frame.depth)
 
     @classmethod
     def start(cls, edges, gx, gy, depth, config: Config) -> PreprocessJob:
@@ -171,7 +174,7 @@ class PreprocessJob:
         d = np.take(depth.ravel(), flat).astype(np.float32)
         d = np.where(np.isfinite(d) & (d >= config.min_depth) & (d <= config.max_depth), d, 0.0)
         return cls(pts, grad.astype(np.float32), mag.astype(np.float32), d.astype(np.float32),
-                   (h, w), fields)
+                   (h, w), fields, depth)
 
     def finish(self) -> Frame:
         """Make the direction codes (while the worker may still run), wait for the distance
@@ -185,4 +188,5 @@ class PreprocessJob:
             edge_depth=self.depth,
             dist=dist,
             edge_map=EdgeMap(dist[0], code),
+            depth=self.depth_image,
         )

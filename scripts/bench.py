@@ -8,9 +8,9 @@ Usage::
 
 Methods:
 
-- ``edgevo`` (the default ``Config``), ``edgevo_all`` (``selection=all``), ``edgevo_map``
-  (``mapping=true``) and any ``--edgevo`` variant, e.g. ``--edgevo "e256=num_edges=256"``:
-  ``edgevo_jax.runner.run_sequence`` (keyframe-based,
+- ``edgevo`` (the default ``Config``), ``edgevo_all`` (``selection=all``), ``edgevo_nomap``
+  (``mapping=false``: no local mapping) and any ``--edgevo`` variant, e.g.
+  ``--edgevo "e256=num_edges=256"``: ``edgevo_jax.runner.run_sequence`` (keyframe-based,
   pipelined: the solve of frame i overlaps the preprocessing of frame i+1).
 - ``cv2_rgb``, ``cv2_depth``, ``cv2_rgbd``: OpenCV 5 ``cv2.Odometry`` with
   ``OdometryType_RGB`` / ``_DEPTH`` / ``_RGB_DEPTH`` (``OdometryAlgoType_COMMON``, default
@@ -85,8 +85,8 @@ from edgevo_jax.provenance import machine_info
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_EDGEVO = "edgevo"
-# the edgevo variants every run includes: selection off (all edges) and local mapping on
-BUILTIN_VARIANTS = ("edgevo_all=selection=all", "edgevo_map=mapping=true")
+# the edgevo variants every run includes: selection off (all edges) and local mapping off
+BUILTIN_VARIANTS = ("edgevo_all=selection=all", "edgevo_nomap=mapping=false")
 PEERS = ("cv2_rgb", "cv2_depth", "cv2_rgbd", "o3d_color", "o3d_hybrid")
 WARMUP_FRAMES = 2  # frame 0 sets up, frame 1 is the first pair (edgevo: compiles)
 O3D_DEPTH_TRUNC_M = 4.0  # = OdometryOption().depth_max

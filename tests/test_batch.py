@@ -111,11 +111,11 @@ def test_load_configs_grid_and_list(tmp_path):
         (1.0, 256), (1.0, 512), (2.0, 256), (2.0, 512)]
     assert all(c.eta == 0.5 for c in configs)
     listed = tmp_path / "list.json"
-    listed.write_text(json.dumps([{}, {"mapping": True, "seed": 3}]))
+    listed.write_text(json.dumps([{}, {"mapping": False, "seed": 3}]))
     a, b = batch.load_configs(listed)
-    assert a == Config() and b.mapping and b.seed == 3
-    assert batch.changed_fields(b) == {"mapping": True, "seed": 3}
-    assert batch.changed_fields(b, base=a.replace(seed=3)) == {"mapping": True}
+    assert a == Config() and not b.mapping and b.seed == 3
+    assert batch.changed_fields(b) == {"mapping": False, "seed": 3}
+    assert batch.changed_fields(b, base=a.replace(seed=3)) == {"mapping": False}
     assert batch.configs_from_spec([{"eta": 0.7}])[0].eta == 0.7
     for bad, match in [("[1, 2]", "expected a non-empty list"), ("{", "not valid JSON"),
                        ('{"grid": {"eta": []}}', "non-empty lists"),

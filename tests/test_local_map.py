@@ -12,7 +12,7 @@ from edgevo_jax.cli import BUNDLED_CLIP
 from edgevo_jax.datasets import load_sequence
 from edgevo_jax.datasets.tum import groundtruth_pose_at
 from edgevo_jax.io import poses7_to_matrices
-from edgevo_jax.local_map import LocalMap
+from edgevo_jax.local_map import LocalMap, depth_continuous
 from edgevo_jax.preprocess import preprocess
 from edgevo_jax.runner import run_sequence, summarise
 from edgevo_jax.selection import keyframe_edges
@@ -59,9 +59,54 @@ def test_window_fills_then_slides(driven):
 def test_edges_are_activated_and_tracked(driven):
     _, steps = driven
     # a keyframe's edges become active once a later keyframe sees them; the newest has none
+    # (about half the edges of these desk frames sit within 5 px of a depth step: 10+ each)
     for s in steps[1:]:
-        assert s["active"][-1] == 0 and all(a > 20 for a in s["active"][:-1]), s["active"]
+        assert s["active"][-1] == 0 and all(a >= 10 for a in s["active"][:-1]), s["active"]
         assert max(s["track"][:-1]) >= 1
+
+
+def test_only_edges_on_continuous_depth_are_activated(driven):
+    """Edges on a depth step (real frames have them: the desk's and the monitor's outlines)
+    are kept as tracked edges but never activated."""
+    lm, _ = driven
+    for kf in lm.window:
+        assert not np.any(kf.active & ~kf.activatable)
+        assert np.all(kf.activatable <= kf.valid)
+    assert sum(int((kf.valid & ~kf.activatable).sum()) for kf in lm.window) > 20
+
+
+def test_depth_continuous_passes_slanted_planes_and_fails_steps_and_holes():
+    h, w = 60, 80
+    vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
+    rng = np.random.default_rng(0)
+    angle = rng.uniform(0, 2 * np.pi, 40)
+    grad = np.stack([np.cos(angle), np.sin(angle)])
+    uv = np.stack([rng.integers(10, w - 10, 40), rng.integers(10, h - 10, 40)]).astype(float)
+    # a steep plane (inverse depth affine in the pixels: 0.33 to 1.6 m across the image)
+    plane = 1.0 / (0.6 + 0.02 * uu + 0.01 * vv)
+    for reach in (3, 5):
+        assert depth_continuous(plane.astype(np.float32), uv, grad, max_step=0.0105,
+                                reach=reach).all()
+    # a 2 cm step at 1 m (0.0198 / m in inverse depth) at column 40: edges within 3 px of
+    # it along their gradient fail, those farther away pass
+    step = np.where(uu < 40, 1.0, 1.02).astype(np.float32)
+    uv_x = np.array([[37.0, 38.0, 39.0, 40.0, 42.0, 43.0, 30.0, 50.0], [30.0] * 8])
+    across = np.tile([[1.0], [0.0]], 8)
+    got = depth_continuous(step, uv_x, across, max_step=0.0105, reach=3)
+    np.testing.assert_array_equal(got, [False, False, False, False, False, True, True, True])
+    # with a reach of 5 px, the edge 3 px past the step fails too, the one 10 px away passes
+    got = depth_continuous(step, uv_x, across, max_step=0.0105, reach=5)
+    np.testing.assert_array_equal(got, [False, False, False, False, False, False, True, True])
+    # the same edges with gradients along the step (the depth is constant along it) pass
+    along = np.tile([[0.0], [1.0]], 8)
+    assert depth_continuous(step, uv_x, along, max_step=0.0105, reach=5).all()
+    # a missing depth pixel within reach, or the image border, fails the edge
+    holes = plane.astype(np.float32).copy()
+    holes[30, 32] = 0.0
+    holes[30, 52] = np.nan
+    edges = np.array([[30.0, 50.0, 1.0, 30.0], [30.0, 30.0, 30.0, 20.0]])
+    got = depth_continuous(holes, edges, np.tile([[1.0], [0.0]], 4), max_step=0.0105, reach=3)
+    np.testing.assert_array_equal(got, [False, False, False, True])
 
 
 def test_refinement_moves_poses_a_little_and_keeps_the_gauge(driven):
@@ -69,7 +114,7 @@ def test_refinement_moves_poses_a_little_and_keeps_the_gauge(driven):
     for s in steps[2:]:
         moved = np.linalg.norm(s["pose_out"][:3, 3] - s["pose_in"][:3, 3])
         assert 0 < moved < 0.02 and np.all(np.isfinite(s["pose_out"]))
-        assert s["stats"]["inliers"] > 100
+        assert s["stats"]["inliers"] > 50  # residuals of the active edges in the window
     # intrinsics stay the calibration's unless mapping_intrinsics is on
     np.testing.assert_array_equal(lm.intrinsics, np.asarray(
         load_sequence(BUNDLED_CLIP).intrinsics, np.float32))

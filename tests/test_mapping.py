@@ -253,6 +253,26 @@ def test_blocks_equal_dense_normal_equations_and_gauge_is_null():
             assert np.linalg.norm(H @ v) < 1e-8 * np.linalg.norm(H, 2)
 
 
+def test_remove_keyframe_keeps_the_others_in_order():
+    """Every field but the intrinsics loses row ``index`` (first, middle, last, negative);
+    the optional fields stay None."""
+    rng = np.random.default_rng(0)
+    n, A = 4, 3
+    p = WindowProblem(
+        poses=jnp.asarray(rng.random((n, 4, 4))), uv=jnp.asarray(rng.random((n, 2, A))),
+        rho=jnp.asarray(rng.random((n, A))), valid=jnp.asarray(rng.random((n, A)) > 0.5),
+        fields=jnp.asarray(rng.random((n, 5, 6))), intrinsics=jnp.arange(4.0))
+    for index in (0, 1, 2, 3, -1):
+        keep = [k for k in range(n) if k != range(n)[index]]
+        out = remove_keyframe(p, index)
+        for name in ("poses", "uv", "rho", "valid", "fields"):
+            np.testing.assert_array_equal(getattr(out, name), np.asarray(getattr(p, name))[keep])
+        np.testing.assert_array_equal(out.intrinsics, p.intrinsics)
+        assert out.grad is None and out.edge_map is None and out.rho_prior is None
+    with pytest.raises(IndexError):
+        remove_keyframe(p, n)
+
+
 def test_mapping_config_from_config_reads_level_0():
     cfg = MappingConfig.from_config(Config(huber_delta=(1.5, 2.0, 2.0),
                                            max_residual=(4.0, 5.0, 5.0)), iterations=3)
