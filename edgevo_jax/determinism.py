@@ -14,6 +14,11 @@ noise; programs dominated by large matrix products run slower without FMA. Set
 ``EDGEVO_EXACT=0`` before importing edgevo_jax to leave XLA's flags alone (results then
 agree alone and batched to ~1e-7 per pose, not bit for bit). Only x86-64 CPUs are capped;
 elsewhere (ARM, GPUs) the batch-size invariance is not guaranteed.
+
+``full_precision_products`` sets JAX's default matmul precision to "highest": on GPUs JAX
+otherwise multiplies float32 matrices on TF32 tensor cores (10-bit mantissas), and the
+selection's and the window's products lost enough that batched runs on an H100 drifted off
+by metres (README, GPU); on CPUs it changes nothing.
 """
 
 from __future__ import annotations
@@ -49,6 +54,20 @@ def cap_cpu_isa() -> bool:
             ExactnessWarning, stacklevel=3)
         return False
     os.environ["XLA_FLAGS"] = f"{flags} {FLAG}".strip()
+    return True
+
+
+def full_precision_products() -> bool:
+    """Set ``jax_default_matmul_precision`` to "highest" unless the user chose one (the
+    JAX_DEFAULT_MATMUL_PRECISION variable or ``jax.config``); EDGEVO_EXACT=0 leaves it.
+    Returns whether edgevo_jax set it."""
+    import jax
+
+    if os.environ.get("EDGEVO_EXACT", "1") == "0":
+        return False
+    if jax.config.jax_default_matmul_precision is not None:
+        return False
+    jax.config.update("jax_default_matmul_precision", "highest")
     return True
 
 

@@ -1,9 +1,13 @@
-"""determinism.cap_cpu_isa: XLA's CPU instruction set is capped (no FMA) before JAX starts,
-so that a run gives the same result alone and in a batch (tests/test_batch.py checks that)."""
+"""determinism: XLA's CPU instruction set is capped (no FMA) before JAX starts,
+so that a run gives the same result alone and in a batch (tests/test_batch.py checks that), and
+float32 products at full precision on GPUs too."""
 
 from __future__ import annotations
 
+import os
 import platform
+import subprocess
+import sys
 
 import pytest
 
@@ -51,3 +55,19 @@ def test_warns_when_the_backend_started_first(monkeypatch):
     with pytest.warns(determinism.ExactnessWarning, match="before edgevo_jax was imported"):
         assert determinism.cap_cpu_isa() is False
     assert determinism.os.environ["XLA_FLAGS"] == ""
+
+
+def test_float32_products_at_full_precision_unless_the_user_chose():
+    """GPUs' TF32 products made batched runs drift by metres (determinism.py); a user's own
+    choice of precision stands."""
+    if os.environ.get("EDGEVO_EXACT") == "0":
+        pytest.skip("EDGEVO_EXACT=0: edgevo_jax leaves the precision alone")
+    code = "import edgevo_jax, jax; print(jax.config.jax_default_matmul_precision)"
+    env = {k: v for k, v in os.environ.items() if k != "JAX_DEFAULT_MATMUL_PRECISION"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True, check=True).stdout.split()
+    assert out[-1] == "highest"
+    env["JAX_DEFAULT_MATMUL_PRECISION"] = "bfloat16"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True, check=True).stdout.split()
+    assert out[-1] == "bfloat16"
