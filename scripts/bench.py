@@ -52,7 +52,9 @@ that the peak RSS is the method's own and a crashing peer cannot take the benchm
   (``run.decode_ms``), preprocess (``FrameResult.preprocess_ms``), solve wait
   (``FrameResult.solve_ms``) and host other = frame - preprocess - solve wait (clipped at
   0). The solve runs while the next frame is preprocessed, so the stages do not add up to
-  the frame time.
+  the frame time. Per keyframe (medians over keyframes, ``runner.summarise``): edge
+  selection (``select_ms``) and local mapping (``mapping_ms``), with the share of frames
+  that were keyframes: these make the p90 and the mean, not the median.
 
 A peer whose library is absent (ImportError, or an OpenCV without ``cv2.Odometry``) is
 reported as ``"missing": "<reason>"``; an unknown method name likewise. Results go to
@@ -93,7 +95,9 @@ O3D_DEPTH_TRUNC_M = 4.0  # = OdometryOption().depth_max
 PROFILE_NOTE = (
     "solve wait = FrameResult.solve_ms, from submitting frame k to its result; it runs while "
     "the host preprocesses frame k+1, so preprocess and solve overlap and the stages do not "
-    "add up to the frame time; host other = frame - preprocess - solve wait, clipped at 0"
+    "add up to the frame time; host other = frame - preprocess - solve wait, clipped at 0; "
+    "selection and mapping: median ms per keyframe, on the keyframes (the share given), "
+    "which they lengthen"
 )
 
 Pose = np.ndarray  # (4, 4) float64
@@ -364,6 +368,12 @@ def run_peer(method: str, seq: Any, max_frames: int | None = None) -> dict[str, 
     return out
 
 
+def _stat(stats: dict[str, Any], key: str) -> float:
+    """The median of one of ``runner.summarise``'s per-keyframe timings (NaN if none)."""
+    value = stats.get(key)
+    return float(value["median"]) if isinstance(value, dict) and "median" in value else math.nan
+
+
 def run_edgevo(overrides: Sequence[str], seq: Any, max_frames: int | None = None
                ) -> dict[str, Any]:
     """Track ``seq`` with edgevo_jax (``Config().with_overrides(overrides)``)."""
@@ -399,6 +409,9 @@ def run_edgevo(overrides: Sequence[str], seq: Any, max_frames: int | None = None
             "preprocess": _median(pre[WARMUP_FRAMES:]),
             "solve_wait": _median(solve[WARMUP_FRAMES:]),
             "host_other": _median(other),
+            "selection_per_keyframe": _stat(stats, "select_ms"),
+            "mapping_per_keyframe": _stat(stats, "mapping_ms"),
+            "keyframe_share": int(stats["keyframes"]) / max(n, 1),
         },
         "baseline_rss_mib": baseline,
     }
@@ -510,15 +523,18 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
 
 def profile_table(rows: list[dict[str, Any]]) -> str:
     """Per-stage medians of the edgevo variants (ms per warm frame)."""
-    lines = ["| sequence | variant | frame | decode | preprocess | solve wait | host other |",
-             "|" + "---|" * 7]
+    lines = ["| sequence | variant | frame | decode | preprocess | solve wait | host other "
+             "| selection / kf | mapping / kf | keyframes |",
+             "|" + "---|" * 10]
     for r in rows:
         p = r.get("profile_ms")
         if p is None:
             continue
         lines.append("| " + " | ".join([r["sequence"], r["method"]] + [
             _fmt(p.get(k), ".1f")
-            for k in ("frame", "decode", "preprocess", "solve_wait", "host_other")]) + " |")
+            for k in ("frame", "decode", "preprocess", "solve_wait", "host_other",
+                      "selection_per_keyframe", "mapping_per_keyframe")]
+            + [_fmt(100 * p.get("keyframe_share", math.nan), ".0f") + " %"]) + " |")
     return "\n".join(lines) + f"\n\n{PROFILE_NOTE}."
 
 
