@@ -145,3 +145,17 @@ def params_from_dict(values: dict, config: Config) -> Params:
             raise ValueError(f"Params.{name} must have shape {d.shape}, got {v.shape}")
         fields[name] = v
     return Params(**fields)
+
+
+def flatten(params: Params) -> jnp.ndarray:
+    """Every parameter in one vector (finite differences, optimisers over a flat vector)."""
+    return jnp.concatenate([jnp.ravel(x) for x in params])
+
+
+def unflatten(v: jnp.ndarray, like: Params) -> Params:
+    """The inverse of ``flatten``: ``v`` cut into the shapes of ``like``'s fields."""
+    out, i = [], 0
+    for x in like:
+        out.append(v[i:i + x.size].reshape(x.shape))
+        i += x.size
+    return Params(*out)

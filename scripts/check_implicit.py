@@ -48,7 +48,7 @@ from edgevo_jax.datasets import groundtruth_pose_at, load_sequence
 from edgevo_jax.geometry import inverse_np
 from edgevo_jax.io import json_safe, poses7_to_matrices
 from edgevo_jax.learn import level_system, newton_decrement, pose_loss, track_differentiable
-from edgevo_jax.params import Params
+from edgevo_jax.params import Params, flatten, unflatten
 from edgevo_jax.preprocess import preprocess
 from edgevo_jax.selection import keyframe_edges
 from edgevo_jax.solve import KeyframeEdges
@@ -81,18 +81,6 @@ def nondefault_params(config: Config) -> Params:
     return Params.default(config, jnp.float64)._replace(
         weight_w=jnp.array([0.1, -0.2, 0.3, 0.05]), weight_b=jnp.asarray(0.1),
         log_huber=jnp.log(jnp.array([1.2, 0.9, 1.1])))
-
-
-def flatten(p: Params) -> jnp.ndarray:
-    return jnp.concatenate([jnp.ravel(x) for x in p])
-
-
-def unflatten(v: jnp.ndarray, like: Params) -> Params:
-    out, i = [], 0
-    for x in like:
-        out.append(v[i:i + x.size].reshape(x.shape))
-        i += x.size
-    return Params(*out)
 
 
 def _pose(v, kf, dist, em, intr, config, interpolation, refine, adjoint):

@@ -35,7 +35,7 @@ from edgevo_jax.learn import (
     window_rpe_loss,
 )
 from edgevo_jax.metrics import ate
-from edgevo_jax.params import Params
+from edgevo_jax.params import Params, flatten, unflatten
 from edgevo_jax.preprocess import preprocess
 from edgevo_jax.selection import keyframe_edges
 from edgevo_jax.solve import KeyframeEdges, track
@@ -69,18 +69,6 @@ def problem(clip, k, dtype):
     dist = tuple(jnp.asarray(d, dtype) for d in f.dist)
     return kf, dist, jax.tree.map(jnp.asarray, f.edge_map), jnp.asarray(mag, dtype), jnp.asarray(
         T_gt[k], dtype)
-
-
-def flatten(p: Params) -> jnp.ndarray:
-    return jnp.concatenate([jnp.ravel(x) for x in p])
-
-
-def unflatten(v: jnp.ndarray, like: Params) -> Params:
-    out, i = [], 0
-    for x in like:
-        out.append(v[i:i + x.size].reshape(x.shape))
-        i += x.size
-    return Params(*out)
 
 
 def trained_like(config: Config, **changes) -> Params:
