@@ -87,7 +87,6 @@ from .solve import (
     LMTry,
     SolveKnobs,
     TrackResult,
-    damped_step,
     lm_continues,
     lm_iteration,
     lm_start,
@@ -179,24 +178,18 @@ def _decisions(
     return mask, dots
 
 
+def _settles(old: LevelSystem, new: LevelSystem) -> jnp.ndarray:
+    """LM's acceptance with ``settle``: a step is also kept when it shrinks the gradient
+    without raising the cost beyond rounding (near a stationary point cost differences drown
+    in rounding while the gradient still says where to go)."""
+    slack = 64 * jnp.finfo(old.cost.dtype).eps * (jnp.abs(old.cost) + 1.0)
+    shrinks = (new.cost <= old.cost + slack) & (new.g @ new.g < old.g @ old.g)
+    return (new.cost < old.cost) | shrinks
+
+
 def _lm_try(system_at, state: LMTry, settle: bool) -> LMTry:
-    """``solve.lm_iteration``; with ``settle``, a step is also kept when it shrinks the
-    gradient without raising the cost beyond rounding (near a stationary point cost
-    differences drown in rounding while the gradient still says where to go)."""
-    if not settle:
-        return lm_iteration(system_at, state)
-    system = state.system
-    xi = damped_step(system, state.lam)
-    T_new = state.T.retract(xi)
-    sys_new = system_at(T_new)
-    slack = 64 * jnp.finfo(system.cost.dtype).eps * (jnp.abs(system.cost) + 1.0)
-    better = (sys_new.cost < system.cost) | (
-        (sys_new.cost <= system.cost + slack) & (sys_new.g @ sys_new.g < system.g @ system.g))
-    T, system = jax.tree.map(lambda a, b: jnp.where(better, a, b), (T_new, sys_new),
-                             (state.T, system))
-    lam = jnp.clip(jnp.where(better, state.lam * 0.1, state.lam * 10.0), 1e-6, 1e4)
-    rejects = jnp.where(better, 0, state.rejects + 1)
-    return LMTry(T, system, lam, jnp.sqrt(xi @ xi), rejects)
+    """``solve.lm_iteration``, with ``_settles`` as the acceptance test when ``settle``."""
+    return lm_iteration(system_at, state, _settles) if settle else lm_iteration(system_at, state)
 
 
 def _align(

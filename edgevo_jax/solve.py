@@ -276,13 +276,23 @@ def lm_start(T: Rigid, system: LevelSystem) -> LMTry:
                  jnp.asarray(0, jnp.int32))
 
 
-def lm_iteration(system_at: Callable[[Rigid], LevelSystem], state: LMTry) -> LMTry:
-    """One Levenberg-Marquardt try: the damped step is kept when ``system_at`` says it lowers
-    the robust cost; lam shrinks 10x after a kept step and grows 10x after a rejected one."""
+def lower_cost(old: LevelSystem, new: LevelSystem) -> jnp.ndarray:
+    """Levenberg-Marquardt's acceptance test: the step lowered the robust cost."""
+    return new.cost < old.cost
+
+
+def lm_iteration(
+    system_at: Callable[[Rigid], LevelSystem],
+    state: LMTry,
+    accept: Callable[[LevelSystem, LevelSystem], jnp.ndarray] = lower_cost,
+) -> LMTry:
+    """One Levenberg-Marquardt try: the damped step is kept when ``accept`` (old system, new
+    system) holds, by default when ``system_at`` says it lowers the robust cost; lam shrinks
+    10x after a kept step and grows 10x after a rejected one."""
     xi = damped_step(state.system, state.lam)
     T_new = state.T.retract(xi)
     sys_new = system_at(T_new)
-    better = sys_new.cost < state.system.cost
+    better = accept(state.system, sys_new)
     T, system = jax.tree.map(
         lambda a, b: jnp.where(better, a, b), (T_new, sys_new), (state.T, state.system)
     )
