@@ -1,12 +1,16 @@
-"""Shared test helpers: the real TUM RGB-D clips in ../shared/data/tum (skipped when absent)."""
+"""Shared test helpers: the real TUM RGB-D clips in ../shared/data/tum (skipped when absent),
+and the scripts in scripts/ loaded as modules."""
 
 from __future__ import annotations
 
+import importlib.util
 from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 
+SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 SHARED_TUM = Path(__file__).resolve().parents[2] / "shared" / "data" / "tum"
 
 
@@ -28,3 +32,11 @@ def shared_clip() -> Callable[[str], Path]:
         return clip
 
     return get
+
+
+def load_script(name: str) -> ModuleType:
+    """scripts/<name>.py as a module (the scripts are not a package)."""
+    spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

@@ -3,18 +3,12 @@ gradient (the measurement behind Config.activation_depth_reach)."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
-
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "depth_step_offsets.py"
+from conftest import load_script
 
 
 def test_step_offsets_finds_the_step_and_skips_edges_without_one():
-    spec = importlib.util.spec_from_file_location("depth_step_offsets", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = load_script("depth_step_offsets")
     h, w = 40, 80
     uu = np.mgrid[0:h, 0:w][1]
     depth = np.where(uu < 40, 1.0, 1.5).astype(np.float32)  # the step between 39 and 40

@@ -4,26 +4,18 @@ the loss-curve PNG is written."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
-from pathlib import Path
 
 import pytest
+from conftest import load_script
 
 from edgevo_jax.cli import BUNDLED_CLIP
 
 pytest.importorskip("optax", reason="optax is needed to fit Params (pip install 'optax>=0.2')")
 pytest.importorskip("matplotlib", reason="matplotlib draws the loss curve")
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "learn_weights.py"
 
-
-def _load_script():
-    spec = importlib.util.spec_from_file_location("learn_weights", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def _numbers(obj):
@@ -39,7 +31,7 @@ def _numbers(obj):
 
 def test_learn_weights_runs_on_the_bundled_clip(tmp_path, capsys):
     out_json, out_png = tmp_path / "log.json", tmp_path / "loss.png"
-    rc = _load_script().main([
+    rc = load_script("learn_weights").main([
         str(BUNDLED_CLIP), "--train", "0:5", "--test", "5:10", "--gaps", "1,2",
         "--num-edges", "64", "--steps", "2", "--batch", "4", "--timing-reps", "1",
         "--control-runs", "1",
@@ -75,7 +67,7 @@ def test_learn_weights_runs_on_the_bundled_clip(tmp_path, capsys):
 def test_learn_weights_window_loss(tmp_path, capsys):
     """--loss window: windows of 3 frames tracked against a keyframe; finite losses."""
     out_json = tmp_path / "log.json"
-    rc = _load_script().main([
+    rc = load_script("learn_weights").main([
         str(BUNDLED_CLIP), "--train", "0:5", "--test", "5:10", "--gaps", "1",
         "--loss", "window", "--window", "3", "--num-edges", "64", "--steps", "1",
         "--batch", "2", "--timing-reps", "1", "--no-ate",
@@ -91,7 +83,7 @@ def test_learn_weights_window_loss(tmp_path, capsys):
 
 
 def test_learn_weights_missing_sequence(tmp_path, capsys):
-    rc = _load_script().main([str(tmp_path / "nowhere"), "--out-json",
+    rc = load_script("learn_weights").main([str(tmp_path / "nowhere"), "--out-json",
                               str(tmp_path / "x.json"), "--out-png", str(tmp_path / "x.png")])
     assert rc == 2 and "sequence folder not found" in capsys.readouterr().err
     assert not (tmp_path / "x.json").exists()

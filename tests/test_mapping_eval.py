@@ -5,31 +5,21 @@ runs end to end on a few frames of the bundled clip."""
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import json
-from pathlib import Path
 
 import jaxlie
 import numpy as np
+from conftest import load_script
 
 from edgevo_jax.cli import BUNDLED_CLIP
 from edgevo_jax.datasets import load_sequence
 from edgevo_jax.io import poses7_to_matrices
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "mapping_eval.py"
-
-
-def _load_script():
-    spec = importlib.util.spec_from_file_location("mapping_eval", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
 
 def test_similarity_alignment_recovers_a_shortened_trajectory():
     """The ground truth moved rigidly and shrunk by 2 %: scale 1 / 0.98, residual ~0; the
     rigid ATE of the same estimate is not ~0 (what the scale hides from it)."""
-    me = _load_script()
+    me = load_script("mapping_eval")
     rng = np.random.default_rng(0)
     gt_t = np.arange(40) * 0.03
     pos = np.cumsum(rng.normal(0, 0.02, (40, 3)), axis=0)
@@ -46,7 +36,7 @@ def test_similarity_alignment_recovers_a_shortened_trajectory():
 
 
 def test_script_runs_and_writes_its_table(tmp_path, capsys):
-    me = _load_script()
+    me = load_script("mapping_eval")
     out = tmp_path / "m.json"
     assert me.main([str(BUNDLED_CLIP), "--seeds", "0", "--max-frames", "4",
                     "--out-json", str(out)]) == 0
