@@ -31,6 +31,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import json
+import threading
 import time
 from collections.abc import Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -96,6 +97,7 @@ class _Frames:
         self.seq, self.config, self.n = seq, config, n
         self._futures: dict[int, Future] = {}
         self._low = 0  # frames before this one are dropped
+        self._lock = threading.Lock()  # runs are concluded on two threads (_concluders)
 
     def _make(self, i: int) -> Frame:
         return preprocess(*self.seq.load_frame(i), self.config)
@@ -108,9 +110,11 @@ class _Frames:
 
     def __getitem__(self, i: int) -> Frame:
         i = min(i, self.n - 1)
-        if i not in self._futures:
-            self._futures[i] = _prefetcher().submit(self._make, i)
-        return self._futures[i].result()
+        with self._lock:
+            if i not in self._futures:
+                self._futures[i] = _prefetcher().submit(self._make, i)
+            job = self._futures[i]
+        return job.result()
 
     def drop_before(self, i: int) -> None:
         """Forget the frames before index ``i``."""
@@ -123,6 +127,13 @@ class _Frames:
 def _prefetcher() -> ThreadPoolExecutor:
     """One thread that decodes and pre-processes frames ahead of the batch."""
     return ThreadPoolExecutor(max_workers=1, thread_name_prefix="edgevo-batch")
+
+
+@cache
+def _concluders() -> ThreadPoolExecutor:
+    """Two threads that conclude runs' chunks side by side (a run's host logic, selection
+    and local mapping; XLA's calls release the GIL, so two runs' windows refine at once)."""
+    return ThreadPoolExecutor(max_workers=2, thread_name_prefix="edgevo-conclude")
 
 
 @dataclass
@@ -257,10 +268,12 @@ def evaluate(
                 out = jax.device_get(step(*inputs))
                 calls += 1
                 solved += sum(stepping[b] for b in members) * chunk
-                for k, b in enumerate(members):
-                    if stepping[b]:
-                        _conclude_chunk(mine[b], jax.tree.map(lambda a, k=k: a[k], out),
-                                        chunk, bar)
+                # runs are independent: each one's conclusions go in order on one thread
+                jobs = [_concluders().submit(_conclude_chunk, mine[b],
+                                             jax.tree.map(lambda a, k=k: a[k], out), chunk, bar)
+                        for k, b in enumerate(members) if stepping[b]]
+                for job in jobs:
+                    job.result()
             for src in sources.values():
                 users = [lane.position for lane in mine if lane.frames is src and not lane.done]
                 src.drop_before(min(users) if users else 1 << 62)

@@ -155,21 +155,58 @@ def _activation_step(intr, T_new_host, uv, rho, grad, valid, active, track, fiel
 
 
 _activation_jit = jax.jit(_activation_step, static_argnames=(
-    "width", "height", "cell", "max_angle_deg", "gate"))
-_refine_jit = jax.jit(refine, static_argnames=("config", "iterations"))
-_marginalize_keyframe_jit = jax.jit(marginalize_keyframe,
-                                    static_argnames=("drop_index", "config"))
+    "width", "height", "cell", "max_angle_deg"))
+
+#: MappingConfig's numbers that reach the window's programs as arrays, not as static
+#: values: configurations that differ in them (a grid of Huber radii) share one compilation.
+TRACED_NUMBERS = ("huber_delta", "max_residual", "eta")
 
 
-_marginalize_edges_jit = jax.jit(marginalize_edges, static_argnames="config")
+def split_numbers(cfg: MappingConfig) -> tuple[MappingConfig, tuple[np.ndarray, ...]]:
+    """The static part of ``cfg`` (its TRACED_NUMBERS set to None) and those numbers as
+    float32 arrays."""
+    return (cfg._replace(**dict.fromkeys(TRACED_NUMBERS)),
+            tuple(np.asarray(getattr(cfg, k), np.float32) for k in TRACED_NUMBERS))
 
 
-def _permute_prior(prior: Prior, order: np.ndarray) -> Prior:
-    """The prior in the layout of the window's keyframes taken in ``order``."""
-    n = order.size
-    idx = np.concatenate([(6 * order[:, None] + np.arange(6)).reshape(-1), 6 * n + np.arange(4)])
-    return Prior(H=prior.H[np.ix_(idx, idx)], b=prior.b[idx], poses=prior.poses[order],
+def _join(structure: MappingConfig, numbers) -> MappingConfig:
+    return structure._replace(**dict(zip(TRACED_NUMBERS, numbers, strict=True)))
+
+
+def _refine(problem: WindowProblem, numbers, prior: Prior, *, config: MappingConfig):
+    """``mapping.refine`` with the numbers of ``split_numbers`` traced."""
+    return refine(problem, _join(config, numbers), prior)
+
+
+_refine_jit = jax.jit(_refine, static_argnames="config")
+def _permute_prior(prior: Prior, order: jnp.ndarray) -> Prior:
+    """The prior in the layout of the window's keyframes taken in ``order`` (n,) int."""
+    n = order.shape[0]
+    idx = jnp.concatenate([(6 * order[:, None] + jnp.arange(6)).reshape(-1),
+                           6 * n + jnp.arange(4)])
+    return Prior(H=prior.H[jnp.ix_(idx, idx)], b=prior.b[idx], poses=prior.poses[order],
                  intrinsics=prior.intrinsics, mask=prior.mask[idx])
+
+
+def _marginalize_first(problem: WindowProblem, numbers, prior: Prior, order: jnp.ndarray, *,
+                       config: MappingConfig) -> Prior:
+    """``marginalize_keyframe`` of keyframe 0 of ``problem`` (the window taken in the new
+    ``order``), with the prior permuted to that order first (numbers: ``split_numbers``)."""
+    return marginalize_keyframe(problem, 0, _join(config, numbers),
+                                _permute_prior(prior, order))
+
+
+def _marginalize_stale(problem: WindowProblem, numbers, stale: jnp.ndarray, prior: Prior, *,
+                       config: MappingConfig) -> Prior:
+    """``marginalize_edges`` of the ``stale`` (n - 1, A) edges of the window without its
+    keyframe 0 (which ``_marginalize_first`` took out)."""
+    return marginalize_edges(remove_keyframe(problem, 0), stale, _join(config, numbers),
+                             prior)
+
+
+_marginalize_first_jit = jax.jit(_marginalize_first, static_argnames="config")
+_marginalize_stale_jit = jax.jit(_marginalize_stale, static_argnames="config")
+_append_to_prior_jit = jax.jit(append_keyframe_to_prior)
 
 
 @dataclass
@@ -186,6 +223,7 @@ class LocalMap:
     def __post_init__(self) -> None:
         self.intrinsics = np.asarray(self.intrinsics, np.float32)
         self._mcfg = mapping_config(self.config)
+        self._structure, self._numbers = split_numbers(self._mcfg)
 
     @property
     def camera(self) -> Intrinsics:
@@ -207,12 +245,13 @@ class LocalMap:
             activatable = valid & depth_continuous(
                 frame.depth, uv, grad, max_step=cfg.activation_depth_step,
                 reach=cfg.activation_depth_reach)
+        dist0 = jnp.asarray(frame.dist[0])
         new = _WindowKeyframe(
             pose=np.asarray(pose, np.float64), uv=uv, rho=rho, grad=grad, valid=valid,
-            dist0=jnp.asarray(frame.dist[0]), edge_map=jax.tree.map(jnp.asarray, frame.edge_map),
+            dist0=dist0, edge_map=EdgeMap(dist0, jnp.asarray(frame.edge_map.code)),
             activatable=activatable)
         if self.prior is not None:
-            self.prior = append_keyframe_to_prior(self.prior, jnp.asarray(new.pose, jnp.float32))
+            self.prior = _append_to_prior_jit(self.prior, np.asarray(new.pose, np.float32))
         self._activate(new)
         self.window.append(new)
         if len(self.window) == cfg.window_size:
@@ -234,7 +273,7 @@ class LocalMap:
             hosts["active"], hosts["track"], new.dist0, new.edge_map,
             width=width, height=height, cell=self.config.activation_cell,
             max_angle_deg=float(self.config.activation_max_angle_deg),
-            gate=float(self.config.max_residual[0]))
+            gate=np.float32(self.config.max_residual[0]))
         track, act = np.asarray(track), np.asarray(act)
         for k, kf in enumerate(self.window[:h]):
             kf.track = track[k].astype(np.int32)
@@ -264,16 +303,16 @@ class LocalMap:
             poses=jnp.asarray(np.stack([kf.pose for kf in self.window]), jnp.float32),
             uv=jnp.asarray(np.stack(uv)), rho=jnp.asarray(np.stack(rho)),
             valid=jnp.asarray(np.stack(valid)),
-            fields=jnp.stack([kf.dist0 for kf in self.window]),
+            fields=tuple(kf.dist0 for kf in self.window),  # per keyframe: nothing copied
             intrinsics=jnp.asarray(self.intrinsics), grad=jnp.asarray(np.stack(grad)),
-            edge_map=jax.tree.map(lambda *xs: jnp.stack(xs), *[kf.edge_map for kf in self.window]),
+            edge_map=tuple(kf.edge_map for kf in self.window),
             rho_prior=jnp.asarray(np.stack(sensor)))
         return problem, picks
 
     def _refine(self) -> dict:
         problem, picks = self._problem()
         prior = self.prior if self.prior is not None else no_prior(problem)
-        out, st = _refine_jit(problem, self._mcfg, prior)
+        out, st = _refine_jit(problem, self._numbers, prior, config=self._structure)
         poses, rho, intr = jax.device_get((out.poses, out.rho, out.intrinsics))
         if not (np.all(np.isfinite(poses)) and np.all(np.isfinite(rho))
                 and np.all(np.isfinite(intr))):
@@ -303,17 +342,19 @@ class LocalMap:
         order = np.array([drop] + [k for k in range(len(self.window)) if k != drop])
         self.window = [self.window[k] for k in order]
         problem, picks = self._problem()
-        prior = no_prior(problem) if self.prior is None else _permute_prior(self.prior, order)
-        prior = _marginalize_keyframe_jit(problem, 0, self._mcfg, prior)
-        self.window, rest, picks = self.window[1:], remove_keyframe(problem, 0), picks[1:]
-        stale = np.zeros(np.asarray(rest.valid).shape, bool)
+        self.window, picks = self.window[1:], picks[1:]
+        stale = np.zeros((len(self.window), cfg.active_per_keyframe), bool)
         for k, kf in enumerate(self.window[:-1]):
             seen = self._visible(kf, new_pose) | self._visible(kf, self.window[-1].pose)
             gone = picks[k][~seen[picks[k]]]
             stale[k, :picks[k].size] = ~seen[picks[k]]
             kf.active[gone] = False
+        prior = no_prior(problem) if self.prior is None else self.prior
+        prior = _marginalize_first_jit(problem, self._numbers, prior, order.astype(np.int32),
+                                       config=self._structure)
         if stale.any():
-            prior = _marginalize_edges_jit(rest, jnp.asarray(stale), self._mcfg, prior)
+            prior = _marginalize_stale_jit(problem, self._numbers, stale, prior,
+                                           config=self._structure)
         self.prior = prior
 
     # -- helpers --------------------------------------------------------------------------

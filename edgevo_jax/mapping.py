@@ -45,8 +45,8 @@ import numpy as np
 
 from .camera import Intrinsics, project, unproject
 from .config import Config
-from .interp import EdgeMap, bilinear, bilinear_with_grad
-from .residuals import gradient_consistent
+from .interp import EdgeMap, bilinear, bilinear_with_grad, edge_direction_at
+from .residuals import consistency_dots_from
 from .robust import huber_cost, huber_weights
 
 
@@ -55,11 +55,13 @@ class WindowProblem(NamedTuple):
 
     poses (n, 4, 4) T_w_k; uv (n, 2, A) level-0 pixels of each keyframe's hosted edges;
     rho (n, A) their inverse depths (1/m); valid (n, A) bool (padding slots False);
-    fields (n, H, W) level-0 distance fields (pixels); intrinsics (4,) fx, fy, cx, cy.
+    fields (n, H, W) level-0 distance fields (pixels), or a tuple of n (H, W) fields (no
+    stacked copy); intrinsics (4,) fx, fy, cx, cy.
     Optional, for EdgeVO's gradient-consistency test (a match counts only where
     g(p) . g(p') >= eta, p' the nearest edge to the projection): grad (n, 2, A) the hosted
     edges' normalised image gradients and edge_map each keyframe's ``interp.EdgeMap``
-    (stacked, (n, H, W) arrays; preprocess.Frame.edge_map). None: no such test.
+    (stacked, (n, H, W) arrays, or a tuple of n EdgeMaps; preprocess.Frame.edge_map). None:
+    no such test.
     rho_prior (n, A), optional: measured inverse depths (the depth sensor's), which
     MappingConfig.depth_prior_sigma turns into the prior term 0.5 ((rho - rho_prior) / sigma)^2
     per active edge. None: no depth measurement.
@@ -69,10 +71,10 @@ class WindowProblem(NamedTuple):
     uv: jnp.ndarray
     rho: jnp.ndarray
     valid: jnp.ndarray
-    fields: jnp.ndarray
+    fields: jnp.ndarray | tuple[jnp.ndarray, ...]
     intrinsics: jnp.ndarray
     grad: jnp.ndarray | None = None
-    edge_map: EdgeMap | None = None
+    edge_map: EdgeMap | tuple[EdgeMap, ...] | None = None
     rho_prior: jnp.ndarray | None = None
 
     @property
@@ -233,9 +235,12 @@ def edge_residuals(problem: WindowProblem, eta: float = 0.6) -> EdgeResiduals:
     iz = 1.0 / jnp.where(front, Z, 1.0)
     uv_j = jnp.stack([fx * P_j[0] * iz + cx, fy * P_j[1] * iz + cy])  # (2, n, n-1, A)
     flat = uv_j.reshape(2, n, (n - 1) * A).transpose(1, 0, 2)
-    r, grad, inside = jax.vmap(bilinear_with_grad)(problem.fields, flat)
-    r = r.reshape(n, n - 1, A)
-    grad = grad.transpose(1, 0, 2).reshape(2, n, n - 1, A)
+    # one lookup per target keyframe in its own field (a stacked (n, H, W) array or a tuple
+    # of n fields: the local map passes the keyframes' fields as they are, never copied)
+    looked = [bilinear_with_grad(problem.fields[j], flat[j]) for j in range(n)]
+    r_flat, grad_flat, inside = (jnp.stack(x) for x in zip(*looked, strict=True))
+    r = r_flat.reshape(n, n - 1, A)
+    grad = grad_flat.transpose(1, 0, 2).reshape(2, n, n - 1, A)
     inside = inside.reshape(n, n - 1, A)
     ax, ay = grad[0] * fx * iz, grad[1] * fy * iz
     a = jnp.stack([ax, ay, -(ax * P_j[0] + ay * P_j[1]) * iz])  # dr/dP_j
@@ -257,9 +262,24 @@ def edge_residuals(problem: WindowProblem, eta: float = 0.6) -> EdgeResiduals:
     consistent = jnp.ones_like(ok)
     if problem.grad is not None and problem.edge_map is not None:
         g_host = jnp.moveaxis(problem.grad[hosts], 2, 0).reshape(2, n, (n - 1) * A)
-        consistent = jax.vmap(gradient_consistent, in_axes=(1, 0, 0, None))(
-            g_host, problem.edge_map, flat, eta).reshape(n, n - 1, A)
+        # the nearest edge's direction from the distances and field gradients just read
+        # (``interp.nearest_edge_gradient`` would read the same field again)
+        dots = [_consistency(g_host[:, j], _edge_codes(problem.edge_map, j), flat[j],
+                             r_flat[j], grad_flat[j]) for j in range(n)]
+        consistent = (jnp.stack(dots) >= eta).reshape(n, n - 1, A)
     return EdgeResiduals(r, J_rho, J_xi, J_c, considered, ok, consistent)
+
+
+def _edge_codes(edge_map: EdgeMap | tuple[EdgeMap, ...], j: int) -> jnp.ndarray:
+    """Keyframe j's direction codes (H, W) from stacked EdgeMap arrays or a tuple of them."""
+    return edge_map.code[j] if isinstance(edge_map, EdgeMap) else edge_map[j].code
+
+
+def _consistency(grad_k: jnp.ndarray, code: jnp.ndarray, uv0: jnp.ndarray, d: jnp.ndarray,
+                 field_grad: jnp.ndarray) -> jnp.ndarray:
+    """g(p) . g(p') (K,) for level-0 points uv0 whose distances d and field gradients are
+    known: ``residuals.consistency_dots`` without reading the field again."""
+    return consistency_dots_from(grad_k, *edge_direction_at(code, uv0, d, field_grad))
 
 
 def _robust_cost(e: EdgeResiduals, considered: jnp.ndarray, mask: jnp.ndarray,
@@ -596,7 +616,8 @@ def refine(
 def remove_keyframe(problem: WindowProblem, index: int) -> WindowProblem:
     """The window without keyframe ``index`` (static): the others keep their order. Slices,
     not a gather: on the CPU, gathering the (n, H, W) fields costs ~5x a copy (~15 ms per
-    keyframe outside jit, as the local map calls it)."""
+    keyframe outside jit, as the local map calls it). Fields and edge maps given per keyframe
+    (tuples) are dropped from the tuple, not copied."""
     n = problem.poses.shape[0]
     index = range(n)[index]  # IndexError outside the window; negative counts from the end
 
@@ -605,9 +626,21 @@ def remove_keyframe(problem: WindowProblem, index: int) -> WindowProblem:
             return x[1:]
         return x[:-1] if index == n - 1 else jnp.concatenate([x[:index], x[index + 1:]])
 
-    return WindowProblem(*(a if name == "intrinsics" or a is None
-                           else jax.tree.map(without, a)
+    def drop(name, a):
+        if name == "intrinsics" or a is None:
+            return a
+        if _per_keyframe(a):  # a tuple of the keyframes' own arrays: leave one out
+            return tuple(x for k, x in enumerate(a) if k != index)
+        return jax.tree.map(without, a)
+
+    return WindowProblem(*(drop(name, a)
                            for name, a in zip(WindowProblem._fields, problem, strict=True)))
+
+
+def _per_keyframe(a) -> bool:
+    """Whether a WindowProblem's fields / edge_map entry is a tuple with one item per
+    keyframe (rather than arrays stacked on a leading axis)."""
+    return isinstance(a, tuple | list) and not isinstance(a, EdgeMap)
 
 
 def marginalize_keyframe(
