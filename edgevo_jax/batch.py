@@ -48,7 +48,7 @@ from .camera import Intrinsics
 from .chunk import track_chunk
 from .config import Config
 from .datasets.tum import TumSequence
-from .hostmem import aligned_stack
+from .hostmem import aligned_stack, to_host
 from .interp import stack_edge_maps
 from .preprocess import Frame, preprocess
 from .runner import initial_pose
@@ -265,7 +265,7 @@ def evaluate(
                 if sharding is not None:
                     per_run = jax.device_put([*inputs[:1], *inputs[3:]], sharding)
                     inputs = (per_run[0], *inputs[1:3], *per_run[1:])
-                out = jax.device_get(step(*inputs))
+                out = to_host(step(*inputs))
                 calls += 1
                 solved += sum(stepping[b] for b in members) * chunk
                 # runs are independent: each one's conclusions go in order on one thread

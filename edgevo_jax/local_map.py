@@ -41,6 +41,7 @@ from .activation import activate, reproject
 from .camera import Intrinsics, unproject
 from .config import Config
 from .geometry import inverse_np, orthonormalise_np
+from .hostmem import to_host
 from .interp import EdgeMap
 from .mapping import (
     MappingConfig,
@@ -313,7 +314,7 @@ class LocalMap:
         problem, picks = self._problem()
         prior = self.prior if self.prior is not None else no_prior(problem)
         out, st = _refine_jit(problem, self._numbers, prior, config=self._structure)
-        poses, rho, intr = jax.device_get((out.poses, out.rho, out.intrinsics))
+        poses, rho, intr = to_host((out.poses, out.rho, out.intrinsics))
         if not (np.all(np.isfinite(poses)) and np.all(np.isfinite(rho))
                 and np.all(np.isfinite(intr))):
             return {"refined": False, "note": "non-finite refinement, kept the estimate"}

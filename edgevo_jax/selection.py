@@ -36,6 +36,7 @@ import numpy as np
 
 from .camera import Intrinsics, unproject
 from .config import Config
+from .hostmem import to_host
 from .preprocess import Frame
 from .residuals import point_jacobian, warp
 from .solve import KeyframeEdges
@@ -313,7 +314,7 @@ def select(
         lam=float(config.logdet_lambda),
         a=float(config.canny_high if reobs_a is None else reobs_a), samples=samples,
     )
-    idx, taken = jax.device_get((idx, taken))
+    idx, taken = to_host((idx, taken))
     return np.sort(order[idx[taken]])
 
 

@@ -18,7 +18,7 @@ from .camera import Intrinsics
 from .chunk import track_chunk_jit, track_next_jit
 from .config import Config
 from .geometry import inverse_np, orthonormalise_np, scale_motion_np
-from .hostmem import aligned_array, aligned_stack
+from .hostmem import aligned_array, aligned_stack, to_host
 from .interp import stack_edge_maps
 from .keyframes import keyframe_reason
 from .local_map import LocalMap
@@ -181,7 +181,7 @@ class Odometry:
         self._in_flight = False
         if pending.output is None:  # first frame (or no usable keyframe yet)
             return self._first(pending)
-        res = jax.device_get(pending.output)
+        res = to_host(pending.output)
         return self._conclude(pending, res, time.perf_counter())[0]
 
     def track_chunk(self, frames: list[Frame], timestamps: list[float], *, size: int
@@ -203,7 +203,7 @@ class Odometry:
                 continue
             todo = frames[i:i + size]
             t_submit = time.perf_counter()
-            out = jax.device_get(self.dispatch_chunk(todo, size))
+            out = to_host(self.dispatch_chunk(todo, size))
             for j in range(len(todo)):
                 res = jax.tree.map(lambda a, j=j: a[j], out)
                 result, plain = self.accept(todo[j], timestamps[i + j], res, t_submit=t_submit)
@@ -351,7 +351,7 @@ class Odometry:
             guesses = [kf.pose, *starts] if kf is self._kf else [predicted, *starts]
             best = None
             for T_w_c in guesses:
-                out = jax.device_get(_track_jit(
+                out = to_host(_track_jit(
                     kf.edges, frame.dist, frame.edge_map,
                     (inverse_np(T_w_c) @ kf.pose).astype(np.float32), self.intrinsics,
                     config=self._static, knobs=self.knobs))

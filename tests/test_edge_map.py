@@ -68,3 +68,31 @@ def test_agrees_with_the_labelled_distance_transform_on_a_real_frame():
     agree = found & (np.sum(g * exact, axis=1) > np.cos(np.radians(25)))
     assert uv.shape[0] > 3000
     assert agree.mean() > 0.90, agree.mean()
+
+
+def test_looked_up_codes_equal_computed_ones():
+    """The frame's direction codes come from a table over every Sobel pair; they must be the
+    codes of the gradients themselves, on every pair (a table built wrongly, off by a row,
+    or with other arithmetic would differ at some) and on a real frame."""
+    from edgevo_jax.preprocess import (
+        SOBEL_MAX,
+        PreprocessJob,
+        _code_table,
+        direction_code_values,
+        normalised_gradients,
+    )
+
+    r = np.arange(-SOBEL_MAX, SOBEL_MAX + 1, dtype=np.int16)
+    gy, gx = (a.ravel() for a in np.meshgrid(r, r, indexing="ij"))
+    rng = np.random.default_rng(0)
+    pick = rng.choice(gx.size, 20000, replace=False)
+    expected = direction_code_values(normalised_gradients(gx[pick], gy[pick])[1])
+    np.testing.assert_array_equal(_code_table()[pick], expected)
+    seq = load_sequence(BUNDLED_CLIP)
+    rgb, depth = seq.rectify_frame(*seq.decode_frame(0))
+    config = Config()
+    job = PreprocessJob.start(*detect_edges(to_gray(rgb), config), depth, config)
+    assert job.codes is not None and job.codes.size > 1000
+    np.testing.assert_array_equal(job.codes, direction_code_values(job.grad))
+    np.testing.assert_array_equal(job.finish().edge_map.code,
+                                  direction_codes(job.pts, job.grad, job.shape))
