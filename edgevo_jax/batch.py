@@ -34,7 +34,7 @@ import json
 import threading
 import time
 from collections.abc import Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from functools import cache, partial
 from pathlib import Path
@@ -272,6 +272,7 @@ def evaluate(
                 jobs = [_concluders().submit(_conclude_chunk, mine[b],
                                              jax.tree.map(lambda a, k=k: a[k], out), chunk, bar)
                         for k, b in enumerate(members) if stepping[b]]
+                wait(jobs)  # both finish before an error in either is raised
                 for job in jobs:
                     job.result()
             for src in sources.values():
