@@ -4,17 +4,20 @@ of the batch equals that configuration run alone.
 Usage::
 
     python scripts/bench_batch.py [SEQ_DIR] [--configs grid.json] [--chunk N]
-                                  [--max-frames N] [--check] [--out-json F] [--out-md F]
+                                  [--max-frames N] [--warmup-frames N] [--check]
+                                  [--out-json F] [--out-md F]
 
 Default sequence: the shared fr3_teddy_first200 clip. Default configurations: a 4 x 4 grid
 of the Huber radius (0.5, 1, 1.5, 2 px at every level) and the edge budget (256, 384, 512,
 640), which includes the default Config; the grid exercises both the vmapped numbers of the
 solve and the host-side selection.
 
-In one process: both batches are first compiled on a few frames (compilation is reported
-apart), then timed over the whole clip: ``batch.evaluate`` with the default Config alone,
-with all configurations, and the streaming runner (``runner.run_sequence``, the pipelined
-frame-by-frame driver) with the default Config. Wall times include decoding and
+In one process: both batches are first compiled on ``--warmup-frames`` frames (default 40:
+enough keyframes to fill the local map's window and marginalise from it, so that the window's
+programs compile there too; compilation is reported apart), then timed over the whole
+clip: ``batch.evaluate`` with the default Config alone, with all configurations, and the
+streaming runner (``runner.run_sequence``, the pipelined frame-by-frame driver) with the
+default Config. Wall times include decoding and
 preprocessing. ``--check`` also runs every configuration alone with ``run_sequence`` and
 reports the largest position difference from its batch run (m).
 """
