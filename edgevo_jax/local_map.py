@@ -180,6 +180,8 @@ def _refine(problem: WindowProblem, numbers, prior: Prior, *, config: MappingCon
 
 
 _refine_jit = jax.jit(_refine, static_argnames="config")
+
+
 def _permute_prior(prior: Prior, order: jnp.ndarray) -> Prior:
     """The prior in the layout of the window's keyframes taken in ``order`` (n,) int."""
     n = order.shape[0]
@@ -350,7 +352,10 @@ class LocalMap:
             gone = picks[k][~seen[picks[k]]]
             stale[k, :picks[k].size] = ~seen[picks[k]]
             kf.active[gone] = False
-        prior = no_prior(problem) if self.prior is None else self.prior
+        if self.prior is None:  # the zero prior, made in the new order already
+            prior, order = no_prior(problem), np.arange(order.size)
+        else:
+            prior = self.prior
         prior = _marginalize_first_jit(problem, self._numbers, prior, order.astype(np.int32),
                                        config=self._structure)
         if stale.any():

@@ -45,8 +45,8 @@ import numpy as np
 
 from .camera import Intrinsics, project, unproject
 from .config import Config
-from .interp import EdgeMap, bilinear, bilinear_with_grad, edge_direction_at
-from .residuals import consistency_dots_from
+from .interp import EdgeMap, bilinear, bilinear_with_grad
+from .residuals import consistency_dots_known
 from .robust import huber_cost, huber_weights
 
 
@@ -264,8 +264,8 @@ def edge_residuals(problem: WindowProblem, eta: float = 0.6) -> EdgeResiduals:
         g_host = jnp.moveaxis(problem.grad[hosts], 2, 0).reshape(2, n, (n - 1) * A)
         # the nearest edge's direction from the distances and field gradients just read
         # (``interp.nearest_edge_gradient`` would read the same field again)
-        dots = [_consistency(g_host[:, j], _edge_codes(problem.edge_map, j), flat[j],
-                             r_flat[j], grad_flat[j]) for j in range(n)]
+        dots = [consistency_dots_known(g_host[:, j], _edge_codes(problem.edge_map, j),
+                                       flat[j], r_flat[j], grad_flat[j]) for j in range(n)]
         consistent = (jnp.stack(dots) >= eta).reshape(n, n - 1, A)
     return EdgeResiduals(r, J_rho, J_xi, J_c, considered, ok, consistent)
 
@@ -273,13 +273,6 @@ def edge_residuals(problem: WindowProblem, eta: float = 0.6) -> EdgeResiduals:
 def _edge_codes(edge_map: EdgeMap | tuple[EdgeMap, ...], j: int) -> jnp.ndarray:
     """Keyframe j's direction codes (H, W) from stacked EdgeMap arrays or a tuple of them."""
     return edge_map.code[j] if isinstance(edge_map, EdgeMap) else edge_map[j].code
-
-
-def _consistency(grad_k: jnp.ndarray, code: jnp.ndarray, uv0: jnp.ndarray, d: jnp.ndarray,
-                 field_grad: jnp.ndarray) -> jnp.ndarray:
-    """g(p) . g(p') (K,) for level-0 points uv0 whose distances d and field gradients are
-    known: ``residuals.consistency_dots`` without reading the field again."""
-    return consistency_dots_from(grad_k, *edge_direction_at(code, uv0, d, field_grad))
 
 
 def _robust_cost(e: EdgeResiduals, considered: jnp.ndarray, mask: jnp.ndarray,

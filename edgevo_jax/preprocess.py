@@ -203,9 +203,12 @@ class PreprocessJob:
         sgx, sgy = np.take(gx.ravel(), flat), np.take(gy.ravel(), flat)
         mag, grad = normalised_gradients(sgx, sgy)
         codes = None
-        if sgx.dtype == np.int16:  # Sobel of a uint8 image: look the codes up
+        # Sobel of a uint8 image (as ``detect_edges`` makes it): look the codes up; other
+        # gradients (``frame_from_edges``'s callers) get them computed in ``finish``
+        if sgx.dtype == np.int16 and sgx.size and max(
+                int(np.abs(sgx).max()), int(np.abs(sgy).max())) <= SOBEL_MAX:
             codes = np.take(_code_table(), (sgy.astype(np.int32) + SOBEL_MAX) * (
-                2 * SOBEL_MAX + 1) + (sgx.astype(np.int32) + SOBEL_MAX), mode="clip")
+                2 * SOBEL_MAX + 1) + (sgx.astype(np.int32) + SOBEL_MAX))
         d = np.take(depth.ravel(), flat).astype(np.float32)
         d = np.where(np.isfinite(d) & (d >= config.min_depth) & (d <= config.max_depth), d, 0.0)
         return cls(pts, grad, mag, d.astype(np.float32), (h, w), fields, depth, codes)

@@ -97,7 +97,7 @@ def consistency_dots(grad_k: jnp.ndarray, edges: EdgeMap, uv0: jnp.ndarray) -> j
     """g(p) . g(p') (K,), the quantity ``gradient_consistent`` compares with eta (same
     arguments); -1 where no nearest edge is found. Piecewise constant in uv0: zero
     derivative."""
-    return consistency_dots_from(grad_k, *nearest_edge_gradient(edges, uv0))
+    return _dots(grad_k, *nearest_edge_gradient(edges, uv0))
 
 
 def consistency_dots_at_level(
@@ -108,13 +108,17 @@ def consistency_dots_at_level(
     field gradients (2, K) are known (the solve has them): the step to the nearest edge is
     taken on level l's field, with no further lookups in level 0's."""
     uv0 = (uv_l + 0.5) * (2.0**level) - 0.5
-    return consistency_dots_from(
-        grad_k, *edge_direction_at(edges.code, uv0, r * (2.0**level), field_grad))
+    return consistency_dots_known(grad_k, edges.code, uv0, r * (2.0**level), field_grad)
 
 
-def consistency_dots_from(grad_k: jnp.ndarray, g_near: jnp.ndarray, found: jnp.ndarray
-                          ) -> jnp.ndarray:
-    """g(p) . g(p') (K,) from the nearest edges' gradients g_near (2, K) and whether each was
-    found (K,) (``interp.edge_direction_at``); -1 where none was."""
+def consistency_dots_known(grad_k: jnp.ndarray, code: jnp.ndarray, uv0: jnp.ndarray,
+                           d: jnp.ndarray, field_grad: jnp.ndarray) -> jnp.ndarray:
+    """``consistency_dots`` for level-0 points uv0 (2, K) whose distances d (K,) (level-0 px)
+    and distance-field gradients (2, K) are already known: no lookup of the field again;
+    code: the frame's direction codes (``interp.EdgeMap.code``)."""
+    return _dots(grad_k, *edge_direction_at(code, uv0, d, field_grad))
+
+
+def _dots(grad_k: jnp.ndarray, g_near: jnp.ndarray, found: jnp.ndarray) -> jnp.ndarray:
     g_near = g_near.astype(grad_k.dtype)
     return jnp.where(found, grad_k[0] * g_near[0] + grad_k[1] * g_near[1], -1.0)
