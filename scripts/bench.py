@@ -43,7 +43,13 @@ that the peak RSS is the method's own and a crashing peer cannot take the benchm
   two frames (frame 0 only sets up; frame 1 is the first pair, and edgevo compiles then).
   ``first_frame_ms``: edgevo's ``compile_s`` (cold XLA compilation in a fresh process, no
   persistent cache), for peers the time of their first pair.
-- ``peak_rss_mib``: ``ru_maxrss`` of the child at its end. Every child imports edgevo_jax
+- ``warm_mean_ms`` includes, for edgevo with local mapping, the window's programs compiling
+  when the window first fills and first marginalises (each child is a fresh process without
+  the CLI's compile cache); ``compiled_mean_ms`` / ``compiled_median_ms`` come from a second
+  run of the same frames in the same process, every program compiled, and
+  ``repeat_identical`` says whether it gave the first run's poses exactly.
+- ``peak_rss_mib``: ``ru_maxrss`` of the child at its end (edgevo: after its first run, before
+  the compiled one). Every child imports edgevo_jax
   (and so JAX and OpenCV) to read the sequence; ``baseline_rss_mib`` is the peak after
   that, before the method's own library was imported and the method started.
 - ``ratio_to_edgevo``: warm median / warm median of the default ``edgevo`` variant on the
@@ -383,6 +389,11 @@ def run_edgevo(overrides: Sequence[str], seq: Any, max_frames: int | None = None
     config = Config().with_overrides(list(overrides))
     baseline = _maxrss_mib()
     run = run_sequence(seq, config, progress=False, max_frames=max_frames)
+    peak = _maxrss_mib()  # the method's peak: before the compiled pass below
+    # the same clip again in this process: every program is compiled now (the first pass
+    # compiles the window's programs mid-run, which its mean includes)
+    again = run_sequence(seq, config, progress=False, max_frames=max_frames)
+    compiled = _warm(again.frame_ms)
     stats = summarise(run, seq)
     n = len(run.results)
     warm = _warm(run.frame_ms)
@@ -403,6 +414,10 @@ def run_edgevo(overrides: Sequence[str], seq: Any, max_frames: int | None = None
         "warm_median_ms": _median(warm),
         "warm_p90_ms": _p90(warm),
         "warm_mean_ms": float(warm.mean()) if warm.size else math.nan,
+        "compiled_median_ms": _median(compiled),
+        "compiled_mean_ms": float(compiled.mean()) if compiled.size else math.nan,
+        "repeat_identical": bool(np.array_equal(run.poses, again.poses)),
+        "peak_rss_mib": peak,
         "profile_ms": {
             "frame": _median(warm),
             "decode": _median(run.decode_ms[WARMUP_FRAMES:]),
@@ -494,18 +509,20 @@ def _fmt(v: Any, spec: str) -> str:
 def markdown_table(rows: list[dict[str, Any]]) -> str:
     """The results as a markdown table, one row per method and sequence."""
     head = ("| sequence | method | ATE RMSE (m) | RPE (m/s) | frames | lost | first frame (ms) "
-            "| warm median (ms) | warm p90 (ms) | x edgevo | peak RSS (MiB) | note |")
-    lines = [head, "|" + "---|" * 12]
+            "| warm median (ms) | warm p90 (ms) | warm mean (ms) | compiled mean (ms) "
+            "| x edgevo | peak RSS (MiB) | note |")
+    lines = [head, "|" + "---|" * 14]
     for r in rows:
         if "missing" in r or "error" in r:
             note = f"missing: {r['missing']}" if "missing" in r else f"error: {r['error']}"
-            cells = [r["sequence"], r["method"]] + ["-"] * 9 + [note.replace("|", "/")]
+            cells = [r["sequence"], r["method"]] + ["-"] * 11 + [note.replace("|", "/")]
         else:
             cells = [
                 r["sequence"], r["method"], _fmt(r.get("ate_rmse_m"), ".4f"),
                 _fmt(r.get("rpe_m_per_s"), ".4f"), str(r.get("frames", "")),
                 str(r.get("lost", "")), _fmt(r.get("first_frame_ms"), ".0f"),
                 _fmt(r.get("warm_median_ms"), ".1f"), _fmt(r.get("warm_p90_ms"), ".1f"),
+                _fmt(r.get("warm_mean_ms"), ".1f"), _fmt(r.get("compiled_mean_ms"), ".1f"),
                 _fmt(r.get("ratio_to_edgevo"), ".2f"), _fmt(r.get("peak_rss_mib"), ".0f"),
                 "; ".join(filter(None, [
                     "config: " + ";".join(r["config_overrides"])
@@ -570,7 +587,7 @@ def _child_main(args: argparse.Namespace, variants: dict[str, list[str]]) -> int
     if len(args.sequences) != 1:
         raise ValueError("--one takes exactly one sequence")
     row = run_method(args.one, args.sequences[0], args.max_frames, variants, args.pingpong)
-    row["peak_rss_mib"] = _maxrss_mib()
+    row.setdefault("peak_rss_mib", _maxrss_mib())
     print(json.dumps(json_safe(row)), flush=True)
     return 0
 

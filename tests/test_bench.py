@@ -80,7 +80,8 @@ def test_variants_are_checked(bench):
 def test_ratios_tables_and_json(bench):
     rows = [
         {"method": "edgevo", "sequence": "s", "warm_median_ms": 10.0, "ate_rmse_m": 0.01,
-         "rpe_m_per_s": math.nan, "frames": 9, "lost": 0,
+         "rpe_m_per_s": math.nan, "frames": 9, "lost": 0, "warm_mean_ms": 30.0,
+         "compiled_mean_ms": 12.5,
          "profile_ms": {"frame": 10.0, "decode": 5.0, "preprocess": 8.0, "solve_wait": 9.0,
                         "host_other": 0.0}},
         {"method": "cv2_rgb", "sequence": "s", "warm_median_ms": 35.0, "ate_rmse_m": 0.02,
@@ -92,6 +93,8 @@ def test_ratios_tables_and_json(bench):
     assert "ratio_to_edgevo" not in rows[2]
     md = bench.markdown_table(rows)
     assert "missing: cannot import open3d: x / y" in md and "| 3.50 |" in md
+    assert "| 30.0 | 12.5 | 1.00 |" in md  # warm mean, compiled mean, ratio
+    assert len({line.count("|") for line in md.splitlines()[:5]}) == 1  # columns line up
     assert len(md.splitlines()) == 5
     assert "solve wait" in bench.profile_table(rows)
     safe = bench.json_safe(rows)
