@@ -392,8 +392,11 @@ def run_edgevo(overrides: Sequence[str], seq: Any, max_frames: int | None = None
     peak = _maxrss_mib()  # the method's peak: before the compiled pass below
     # the same clip again in this process: every program is compiled now (the first pass
     # compiles the window's programs mid-run, which its mean includes)
-    again = run_sequence(seq, config, progress=False, max_frames=max_frames)
-    compiled = _warm(again.frame_ms)
+    try:
+        again = run_sequence(seq, config, progress=False, max_frames=max_frames)
+    except Exception as err:  # the first run's numbers stand; say why the second is absent
+        again, compiled_error = None, f"{type(err).__name__}: {err}"
+    compiled = _warm(again.frame_ms) if again is not None else np.zeros(0)
     stats = summarise(run, seq)
     n = len(run.results)
     warm = _warm(run.frame_ms)
@@ -416,7 +419,9 @@ def run_edgevo(overrides: Sequence[str], seq: Any, max_frames: int | None = None
         "warm_mean_ms": float(warm.mean()) if warm.size else math.nan,
         "compiled_median_ms": _median(compiled),
         "compiled_mean_ms": float(compiled.mean()) if compiled.size else math.nan,
-        "repeat_identical": bool(np.array_equal(run.poses, again.poses)),
+        "repeat_identical": bool(np.array_equal(run.poses, again.poses))
+        if again is not None else None,
+        **({} if again is not None else {"compiled_error": compiled_error}),
         "peak_rss_mib": peak,
         "profile_ms": {
             "frame": _median(warm),

@@ -48,6 +48,30 @@ def test_cv2_rgb_tracks_the_bundled_clip(bench):
     json.dumps(bench.json_safe(row), allow_nan=False)
 
 
+def test_edgevo_row_has_a_compiled_pass_and_keeps_the_first_run_without_it(bench, monkeypatch):
+    """The second (compiled) run repeats the first run's poses exactly; if it fails, the first
+    run's numbers stay and the row says why the compiled ones are missing."""
+    from edgevo_jax import runner
+
+    row = bench.run_method("edgevo", BUNDLED_CLIP, max_frames=4)
+    assert row["repeat_identical"] is True and math.isfinite(row["compiled_mean_ms"])
+    assert "compiled_error" not in row
+
+    real, calls = runner.run_sequence, []
+
+    def second_run_fails(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise MemoryError("simulated")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(runner, "run_sequence", second_run_fails)
+    failed = bench.run_method("edgevo", BUNDLED_CLIP, max_frames=4)
+    assert failed["ate_rmse_m"] == row["ate_rmse_m"] and failed["frames"] == row["frames"]
+    assert failed["compiled_error"] == "MemoryError: simulated"
+    assert failed["repeat_identical"] is None and math.isnan(failed["compiled_mean_ms"])
+
+
 def test_unknown_peer_is_reported_missing(bench):
     row = bench.run_method("no_such_peer", BUNDLED_CLIP, max_frames=3)
     assert "unknown method 'no_such_peer'" in row["missing"]
