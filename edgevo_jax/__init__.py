@@ -1,13 +1,13 @@
-"""edgevo_jax: edge-based RGB-D visual odometry (EdgeVO) in JAX."""
+"""edgevo_jax: edge-based RGB-D visual odometry (EdgeVO) in JAX.
 
-from .determinism import cap_cpu_isa, full_precision_products
+Importing the package changes no process-wide setting: see ``enable_batch_exact`` for
+batch-size-exact CPU arithmetic (the ``edgevo`` CLI turns it on).
+"""
 
-cap_cpu_isa()  # before any JAX computation: see determinism.py
-full_precision_products()  # float32 products in float32 on GPUs too (determinism.py)
+from .camera import Intrinsics
+from .config import Config
+from .determinism import enable_batch_exact
+from .tracker import FrameResult, Odometry
 
-from .camera import Intrinsics  # noqa: E402
-from .config import Config  # noqa: E402
-from .tracker import FrameResult, Odometry  # noqa: E402
-
-__all__ = ["Config", "FrameResult", "Intrinsics", "Odometry"]
+__all__ = ["Config", "FrameResult", "Intrinsics", "Odometry", "enable_batch_exact"]
 __version__ = "0.1.0"

@@ -48,6 +48,7 @@ from .camera import Intrinsics
 from .chunk import track_chunk
 from .config import Config
 from .datasets.tum import TumSequence
+from .determinism import full_precision
 from .hostmem import aligned_stack, to_host
 from .interp import stack_edge_maps
 from .preprocess import Frame, preprocess
@@ -168,8 +169,8 @@ def _batched(config: Config, chunk: int, sharding: NamedSharding | None):
     fn = jax.vmap(partial(_step, config=config, chunk=chunk),
                   in_axes=(0, None, None, 0, 0, 0, 0, 0, 0))
     if sharding is None:
-        return jax.jit(fn)
-    return jax.jit(fn, out_shardings=sharding)
+        return full_precision(jax.jit(fn))
+    return full_precision(jax.jit(fn, out_shardings=sharding))
 
 
 def _structure(configs: Sequence[Config]) -> Config:

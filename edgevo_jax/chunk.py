@@ -19,6 +19,7 @@ import jax.numpy as jnp
 
 from .camera import Intrinsics
 from .config import Config
+from .determinism import full_precision
 from .interp import EdgeMap
 from .solve import KeyframeEdges, SolveKnobs, TrackResult, track
 
@@ -91,7 +92,7 @@ def batch_of_one(fn):
     one.__name__ = f"{fn.__name__}_jit"
     one.__doc__ = f"``{fn.__name__}`` jitted, run as a batch of one (``batch_of_one``).\n\n" \
         + (fn.__doc__ or "")
-    return jax.jit(one, static_argnames="config")
+    return full_precision(jax.jit(one, static_argnames="config"))
 
 
 track_next_jit = batch_of_one(track_next)

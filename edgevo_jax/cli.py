@@ -113,6 +113,10 @@ def _add_plot_parser(sub: argparse._SubParsersAction) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``edgevo`` console script."""
     args = _parser().parse_args(argv)
+    if args.command in ("run", "batch"):
+        from .determinism import enable_batch_exact
+
+        enable_batch_exact()  # a run's trajectory equals its trajectory in any batch
     try:
         if args.command == "run":
             return _run(args)

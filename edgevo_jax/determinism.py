@@ -1,44 +1,46 @@
-"""Bit-for-bit reproducible arithmetic on the CPU, whatever the batch size.
+"""Arithmetic that does not depend on the batch size or the device: two switches.
 
-XLA's CPU backend contracts a multiply and an add into one fused multiply-add (FMA, one
-rounding instead of two) wherever the two land in the same compiled kernel, and where they
-land depends on the program's shapes: a run vmapped alone (a batch of one) and the same run
-in a batch of three were compiled into kernels that rounded differently (by ~1e-7 per pose),
-which Levenberg-Marquardt's accept / reject decisions amplify to millimetres over a sequence.
-Without FMA every elementwise operation is rounded once, in any kernel, and a run gives the
-same trajectory alone and in any batch (``batch.py``; tests/test_batch.py checks it).
+Importing edgevo_jax changes no process-wide setting. Instead:
 
-So ``cap_cpu_isa`` caps XLA's CPU instruction set at AVX (no FMA) through ``XLA_FLAGS``
-before JAX starts its CPU backend. The cost for this library's small kernels is within
-noise; programs dominated by large matrix products run slower without FMA. Set
-``EDGEVO_EXACT=0`` before importing edgevo_jax to leave XLA's flags alone (results then
-agree alone and batched to ~1e-7 per pose, not bit for bit). Only x86-64 CPUs are capped;
-elsewhere (ARM, GPUs) the batch-size invariance is not guaranteed.
-
-``full_precision_products`` sets JAX's default matmul precision to "highest": on GPUs JAX
-otherwise multiplies float32 matrices on TF32 tensor cores (10-bit mantissas), and the
-selection's and the window's products lost enough that batched runs on an H100 drifted off
-by metres (README, GPU); on CPUs it changes nothing.
+- ``full_precision(fn)`` wraps each of edgevo's jitted programs so that they trace under
+  ``jax.default_matmul_precision("highest")``: float32 products stay float32 on GPUs (JAX's
+  default there is TF32, 10-bit mantissas), for edgevo's computations only. A precision the
+  user chose (``jax.config`` or a ``jax.default_matmul_precision`` context around the call)
+  stands. On CPUs it changes nothing.
+- ``enable_batch_exact()`` (opt-in; the ``edgevo`` CLI calls it) caps XLA's CPU instruction
+  set at AVX, without fused multiply-adds, through ``XLA_FLAGS``. With FMA, how a multiply
+  and an add round depends on which compiled kernel they land in, and that depends on the
+  program's shapes: a run alone and the same run in a batch round differently (~1e-7 per
+  pose), which Levenberg-Marquardt's accept / reject decisions amplify. Capped, a run gives
+  the same trajectory alone and in any batch (``batch.py``). It must run before JAX starts
+  its CPU backend (the first JAX computation); the environment variable ``EDGEVO_EXACT=0``
+  turns the call into a no-op. Only x86-64 CPUs are capped.
 """
 
 from __future__ import annotations
 
+import functools
 import os
 import platform
 import warnings
+from collections.abc import Callable
+from typing import TypeVar
 
 FLAG = "--xla_cpu_max_isa=AVX"
 
+F = TypeVar("F", bound=Callable)
+
 
 class ExactnessWarning(UserWarning):
-    """JAX's CPU backend started before edgevo_jax could cap its instruction set."""
+    """JAX's CPU backend started before ``enable_batch_exact`` could cap its instruction set."""
 
 
-def cap_cpu_isa() -> bool:
-    """Add ``FLAG`` to ``XLA_FLAGS`` unless EDGEVO_EXACT=0, the machine is not x86-64, or
-    XLA_FLAGS already sets the ISA. Warns (``ExactnessWarning``) when JAX's backends are
-    already running, since the flag can no longer take effect. Returns whether the flag is
-    (now) in XLA_FLAGS."""
+def enable_batch_exact() -> bool:
+    """Add ``FLAG`` to ``XLA_FLAGS`` (batch-size-exact CPU arithmetic, see the module doc)
+    unless EDGEVO_EXACT=0, the machine is not x86-64, or XLA_FLAGS already sets the ISA.
+    Warns (``ExactnessWarning``) and leaves XLA_FLAGS alone when JAX's backends already
+    run, since the flag could no longer take effect. Returns whether the flag is (now) in
+    XLA_FLAGS."""
     flags = os.environ.get("XLA_FLAGS", "")
     if "xla_cpu_max_isa" in flags:
         return FLAG in flags.split()
@@ -48,27 +50,30 @@ def cap_cpu_isa() -> bool:
         return False
     if _backends_started():
         warnings.warn(
-            "JAX's CPU backend started before edgevo_jax was imported, so XLA may use fused "
+            "JAX's CPU backend started before enable_batch_exact(), so XLA may use fused "
             "multiply-adds: batched runs can then differ from runs alone by ~1e-7 per pose. "
-            f"Import edgevo_jax before running JAX code, or set XLA_FLAGS={FLAG}.",
-            ExactnessWarning, stacklevel=3)
+            f"Call it before any JAX computation, or set XLA_FLAGS={FLAG}.",
+            ExactnessWarning, stacklevel=2)
         return False
     os.environ["XLA_FLAGS"] = f"{flags} {FLAG}".strip()
     return True
 
 
-def full_precision_products() -> bool:
-    """Set ``jax_default_matmul_precision`` to "highest" unless the user chose one (the
-    JAX_DEFAULT_MATMUL_PRECISION variable or ``jax.config``); EDGEVO_EXACT=0 leaves it.
-    Returns whether edgevo_jax set it."""
+def full_precision(fn: F) -> F:
+    """``fn`` (a jitted callable) called under ``jax.default_matmul_precision("highest")``
+    unless a precision is already in force (set by the user in ``jax.config``, by
+    JAX_DEFAULT_MATMUL_PRECISION, or by a context around the call). The precision is part
+    of jit's cache key, so the program compiled for it is reused on every call."""
     import jax
 
-    if os.environ.get("EDGEVO_EXACT", "1") == "0":
-        return False
-    if jax.config.jax_default_matmul_precision is not None:
-        return False
-    jax.config.update("jax_default_matmul_precision", "highest")
-    return True
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        if jax.config.jax_default_matmul_precision is not None:
+            return fn(*args, **kwargs)
+        with jax.default_matmul_precision("highest"):
+            return fn(*args, **kwargs)
+
+    return call  # type: ignore[return-value]
 
 
 def _backends_started() -> bool:

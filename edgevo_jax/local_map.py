@@ -40,6 +40,7 @@ import numpy as np
 from .activation import activate, reproject
 from .camera import Intrinsics, unproject
 from .config import Config
+from .determinism import full_precision
 from .geometry import inverse_np, orthonormalise_np
 from .hostmem import to_host
 from .interp import EdgeMap
@@ -155,8 +156,8 @@ def _activation_step(intr, T_new_host, uv, rho, grad, valid, active, track, fiel
     return track, act.reshape(h, k)
 
 
-_activation_jit = jax.jit(_activation_step, static_argnames=(
-    "width", "height", "cell", "max_angle_deg"))
+_activation_jit = full_precision(jax.jit(_activation_step, static_argnames=(
+    "width", "height", "cell", "max_angle_deg")))
 
 #: MappingConfig's numbers that reach the window's programs as arrays, not as static
 #: values: configurations that differ in them (a grid of Huber radii) share one compilation.
@@ -179,7 +180,7 @@ def _refine(problem: WindowProblem, numbers, prior: Prior, *, config: MappingCon
     return refine(problem, _join(config, numbers), prior)
 
 
-_refine_jit = jax.jit(_refine, static_argnames="config")
+_refine_jit = full_precision(jax.jit(_refine, static_argnames="config"))
 
 
 def _permute_prior(prior: Prior, order: jnp.ndarray) -> Prior:
@@ -207,9 +208,9 @@ def _marginalize_stale(problem: WindowProblem, numbers, stale: jnp.ndarray, prio
                              prior)
 
 
-_marginalize_first_jit = jax.jit(_marginalize_first, static_argnames="config")
-_marginalize_stale_jit = jax.jit(_marginalize_stale, static_argnames="config")
-_append_to_prior_jit = jax.jit(append_keyframe_to_prior)
+_marginalize_first_jit = full_precision(jax.jit(_marginalize_first, static_argnames="config"))
+_marginalize_stale_jit = full_precision(jax.jit(_marginalize_stale, static_argnames="config"))
+_append_to_prior_jit = full_precision(jax.jit(append_keyframe_to_prior))
 
 
 @dataclass

@@ -36,6 +36,7 @@ import numpy as np
 
 from .camera import Intrinsics, unproject
 from .config import Config
+from .determinism import full_precision
 from .hostmem import to_host
 from .preprocess import Frame
 from .residuals import point_jacobian, warp
@@ -141,6 +142,7 @@ def first_usable(perm: jnp.ndarray, usable: jnp.ndarray, k: int
     return jnp.minimum(perm[jnp.minimum(at, perm.shape[0] - 1)], n - 1), at < perm.shape[0]
 
 
+@full_precision
 @partial(jax.jit, static_argnames=("num_edges", "lam", "max_per_cell"))
 def partition_greedy(
     J: jnp.ndarray, p: jnp.ndarray, ok: jnp.ndarray, starts: jnp.ndarray,
@@ -182,6 +184,7 @@ def partition_greedy(
     return idx, taken
 
 
+@full_precision
 @partial(jax.jit, static_argnames=("num_edges", "lam", "samples"))
 def stochastic_greedy(
     J: jnp.ndarray, p: jnp.ndarray, ok: jnp.ndarray, key: jax.Array,
@@ -244,6 +247,7 @@ def partition_mean(values: np.ndarray, starts: np.ndarray, counts: np.ndarray) -
     return np.repeat(np.add.reduceat(values, starts) / counts, counts).astype(values.dtype)
 
 
+@full_precision
 @partial(jax.jit, static_argnames=("width", "height", "mode", "num_edges", "max_per_cell",
                                    "lam", "a", "samples"))
 def _select_device(

@@ -61,6 +61,7 @@ from typing import Any
 
 import numpy as np
 
+from edgevo_jax import enable_batch_exact
 from edgevo_jax.config import SELECTIONS, Config
 from edgevo_jax.datasets.tum import SHARED_CLIPS as DEFAULT_CLIPS
 from edgevo_jax.datasets.tum import SHARED_TUM, TumSequence, load_sequence
@@ -348,6 +349,7 @@ def selection_figure(seq: TumSequence, modes: Sequence[str], path: Path) -> dict
 
 def main(argv: list[str] | None = None) -> int:
     """Run the ablation; returns the exit status."""
+    enable_batch_exact()  # the CLI's arithmetic: trajectories as `edgevo run` gives them
     from_cli = argv is None
     argv = sys.argv[1:] if argv is None else list(argv)
     args = _parser().parse_args(argv)

@@ -86,6 +86,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from edgevo_jax import enable_batch_exact
 from edgevo_jax.datasets.tum import SHARED_CLIPS as DEFAULT_CLIPS
 from edgevo_jax.datasets.tum import SHARED_TUM
 from edgevo_jax.io import json_safe
@@ -620,6 +621,7 @@ def _cv2_odometry() -> bool | None:
 def main(argv: list[str] | None = None,
          progress: Callable[[str], None] | None = None) -> int:
     """Entry point: run the benchmark (or, with ``--one``, one method as a child)."""
+    enable_batch_exact()  # the CLI's arithmetic: trajectories as `edgevo run` gives them
     args = _parser().parse_args(argv)
     say = progress or (lambda line: print(line, file=sys.stderr, flush=True))
     try:

@@ -34,7 +34,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from edgevo_jax import Config, batch
+from edgevo_jax import Config, batch, enable_batch_exact
 from edgevo_jax.datasets import load_sequence
 from edgevo_jax.io import json_safe
 from edgevo_jax.runner import run_sequence
@@ -56,6 +56,7 @@ def _timed(fn):
 
 
 def main(argv: list[str] | None = None) -> int:
+    enable_batch_exact()  # the CLI's arithmetic: trajectories as `edgevo run` gives them
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("sequence", nargs="?", type=Path, default=DEFAULT_SEQ)
     p.add_argument("--configs", type=Path, default=None, help="JSON (see edgevo batch)")

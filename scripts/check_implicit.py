@@ -41,7 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from edgevo_jax import Config
+from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.camera import Intrinsics
 from edgevo_jax.cli import BUNDLED_CLIP
 from edgevo_jax.datasets import groundtruth_pose_at, load_sequence
@@ -135,6 +135,7 @@ def check_pair(kf, dist, em, T_gt, intr, config, interpolation, refine, eps) -> 
 
 
 def main(argv: list[str] | None = None) -> int:
+    enable_batch_exact()  # the CLI's arithmetic: trajectories as `edgevo run` gives them
     args = parse_args(argv)
     jax.config.update("jax_enable_x64", True)
     seq = load_sequence(args.sequence)

@@ -68,7 +68,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from edgevo_jax import Config
+from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.chunk import rigid_inverse
 from edgevo_jax.datasets import groundtruth_pose_at, load_sequence, subsequence
 from edgevo_jax.datasets.tum import SHARED_TUM
@@ -312,6 +312,7 @@ def save_plot(losses: list[float], full: list[float], path: Path, title: str,
 
 
 def main(argv: list[str] | None = None) -> int:
+    enable_batch_exact()  # the CLI's arithmetic: trajectories as `edgevo run` gives them
     try:
         import optax
     except ImportError:

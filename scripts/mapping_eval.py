@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from edgevo_jax import Config
+from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets.pingpong import pingpong
 from edgevo_jax.datasets.tum import SHARED_TUM, TumSequence, load_sequence
 from edgevo_jax.io import json_safe, matrices_to_poses7
@@ -75,6 +75,7 @@ def parse_variant(spec: str) -> tuple[str, list[str]]:
 
 def main(argv: list[str] | None = None) -> int:
     """Run every sequence x seed x variant; print and write the results."""
+    enable_batch_exact()  # the CLI's arithmetic: trajectories as `edgevo run` gives them
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("sequences", nargs="*",
                    default=[str(SHARED_TUM / "rgbd_dataset_freiburg3_teddy_first200")])

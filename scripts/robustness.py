@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from edgevo_jax import Config
+from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets.tum import SHARED_TUM, EmptyDepthWarning, TumSequence, load_sequence
 from edgevo_jax.io import json_safe, matrices_to_poses7
 from edgevo_jax.metrics import ate
@@ -62,6 +62,7 @@ def run(seq: TumSequence, config: Config, keep: np.ndarray) -> dict:
 
 
 def main() -> None:
+    enable_batch_exact()  # the CLI's arithmetic: trajectories as `edgevo run` gives them
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("sequence", nargs="?", type=Path,
                    default=SHARED_TUM / "rgbd_dataset_freiburg3_teddy_first200")

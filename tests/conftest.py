@@ -1,4 +1,4 @@
-"""Shared test helpers: the real TUM RGB-D clips in ../shared/data/tum (skipped when absent),
+"""Shared test set-up (the CLI's arithmetic) and helpers: the real TUM RGB-D clips in ../shared/data/tum (skipped when absent),
 and the scripts in scripts/ loaded as modules."""
 
 from __future__ import annotations
@@ -9,6 +9,12 @@ from pathlib import Path
 from types import ModuleType
 
 import pytest
+
+from edgevo_jax import enable_batch_exact
+
+# batch-size-exact arithmetic before any JAX computation (the CLI does the same): a run then
+# equals its batched self bit for bit (tests/test_batch.py, notebooks/05)
+enable_batch_exact()
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 SHARED_TUM = Path(__file__).resolve().parents[2] / "shared" / "data" / "tum"
