@@ -13,8 +13,8 @@ paper's ``a``) and the per-edge weighting model outputs exactly 1 for every edge
 - ``reobs_a``: the offset of the re-observation probability 1 / (1 + exp(a - m_e)). It only
   enters edge selection (``learn.selection_scores``), never the alignment.
 - ``weight_w`` (4,), ``weight_b``: a linear layer on the normalised edge features of
-  ``edge_features`` (gradient magnitude, depth, residual, level); each inlier's Huber weight
-  is scaled by 2 * sigmoid(w . f + b), in (0, 2), which is exactly 1 at w = 0, b = 0.
+  ``robust.weighting_features`` (gradient magnitude, depth, residual, level); each inlier's
+  Huber weight is scaled by 2 * sigmoid(w . f + b), in (0, 2), which is exactly 1 at w = 0, b = 0.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .config import Config
-from .robust import EdgeWeighting, weighting_features, weighting_scale
+from .robust import EdgeWeighting
 from .solve import SolveKnobs, solve_knobs
 
 #: Default temperature of the soft gradient-consistency weight (see ``Params``): edges whose
@@ -66,22 +66,6 @@ class Params(NamedTuple):
     def temperature(self) -> jnp.ndarray:
         """The soft consistency temperature tau."""
         return jnp.exp(self.log_temperature)
-
-
-def edge_features(
-    mag: jnp.ndarray, rho: jnp.ndarray, r: jnp.ndarray, level: int, config: Config
-) -> jnp.ndarray:
-    """Normalised features (4, K) of K edges: log(m / canny_high) of the gradient magnitude m
-    (0 at the culling threshold; pass zeros when unknown), log depth (m), the residual over
-    the level's gate, and the level over the coarsest one (``robust.weighting_features``)."""
-    return weighting_features(mag, rho, r, config.max_residual[level],
-                              _level_features(config)[level], config.canny_high)
-
-
-def edge_weight(params: Params, features: jnp.ndarray) -> jnp.ndarray:
-    """The weighting model's scale (K,) of each edge's Huber weight: 2 * sigmoid(w . f + b)
-    for features (4, K); exactly 1 with the default (zero) weights."""
-    return weighting_scale(params.weight_w, params.weight_b, features)
 
 
 def _level_features(config: Config) -> np.ndarray:

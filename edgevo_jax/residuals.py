@@ -21,7 +21,6 @@ from .interp import (
     bilinear,
     bilinear_with_grad,
     edge_direction_at,
-    nearest_edge_gradient,
 )
 
 
@@ -84,37 +83,24 @@ def residual_jacobian_autodiff(
     return jax.jacfwd(r_of)(jnp.zeros(6, pts_k.dtype)).T
 
 
-def gradient_consistent(
-    grad_k: jnp.ndarray, edges: EdgeMap, uv0: jnp.ndarray, eta: float
-) -> jnp.ndarray:
-    """g(p) . g(p') >= eta, with g(p) (2, K) the keyframe edges' normalised gradients and p'
-    the nearest edge to the warped level-0 pixels uv0 (2, K) (``nearest_edge_gradient``);
-    False where no nearest edge is found."""
-    return consistency_dots(grad_k, edges, uv0) >= eta
-
-
-def consistency_dots(grad_k: jnp.ndarray, edges: EdgeMap, uv0: jnp.ndarray) -> jnp.ndarray:
-    """g(p) . g(p') (K,), the quantity ``gradient_consistent`` compares with eta (same
-    arguments); -1 where no nearest edge is found. Piecewise constant in uv0: zero
-    derivative."""
-    return _dots(grad_k, *nearest_edge_gradient(edges, uv0))
-
-
 def consistency_dots_at_level(
     grad_k: jnp.ndarray, edges: EdgeMap, uv_l: jnp.ndarray, r: jnp.ndarray,
     field_grad: jnp.ndarray, level: int,
 ) -> jnp.ndarray:
-    """``consistency_dots`` for warped level-l pixels uv_l (2, K) whose residuals r (K,) and
-    field gradients (2, K) are known (the solve has them): the step to the nearest edge is
-    taken on level l's field, with no further lookups in level 0's."""
+    """g(p) . g(p') (K,) for warped level-l pixels uv_l (2, K) whose residuals r (K,) and
+    field gradients (2, K) are known (the solve has them), with g(p) (2, K) the keyframe
+    edges' normalised gradients and p' the nearest frame edge; -1 where none is found. The
+    step to the nearest edge is taken on level l's field, with no further lookups in level
+    0's. Piecewise constant in uv_l: zero derivative."""
     uv0 = (uv_l + 0.5) * (2.0**level) - 0.5
     return consistency_dots_known(grad_k, edges.code, uv0, r * (2.0**level), field_grad)
 
 
 def consistency_dots_known(grad_k: jnp.ndarray, code: jnp.ndarray, uv0: jnp.ndarray,
                            d: jnp.ndarray, field_grad: jnp.ndarray) -> jnp.ndarray:
-    """``consistency_dots`` for level-0 points uv0 (2, K) whose distances d (K,) (level-0 px)
-    and distance-field gradients (2, K) are already known: no lookup of the field again;
+    """``consistency_dots_at_level`` for level-0 points uv0 (2, K) whose distances d (K,)
+    (level-0 px) and distance-field gradients (2, K) are already known: no lookup of the
+    field again;
     code: the frame's direction codes (``interp.EdgeMap.code``)."""
     return _dots(grad_k, *edge_direction_at(code, uv0, d, field_grad))
 

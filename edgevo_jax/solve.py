@@ -132,11 +132,6 @@ class TrackResult(NamedTuple):
     cost: jnp.ndarray
 
 
-def level_to_0(uv_l: jnp.ndarray, level: int) -> jnp.ndarray:
-    """Level-l pixel coordinates to level 0 (pixel-centre origin)."""
-    return (uv_l + 0.5) * (2.0**level) - 0.5
-
-
 def normal_equations(
     T: Rigid | jaxlie.SE3,
     pts_k: jnp.ndarray,

@@ -1,5 +1,6 @@
-"""Shared test set-up (the CLI's arithmetic) and helpers: the real TUM RGB-D clips in ../shared/data/tum (skipped when absent),
-and the scripts in scripts/ loaded as modules."""
+"""Shared test set-up (the CLI's batch-exact arithmetic) and helpers: the real TUM RGB-D
+clips in ../shared/data/tum (skipped when absent), and the scripts in scripts/ loaded as
+modules."""
 
 from __future__ import annotations
 
