@@ -1,56 +1,10 @@
 """The frozen configuration of a run: every static choice of the method in one place.
 
-Defaults and where they come from (EdgeVO: Zhao, Shang, Liu, Chen, Gu; DSO for the keyframe
-weights the paper adopts):
-- Canny on a 5x5, sigma 1 Gaussian-blurred gray image with L2 Sobel magnitude, thresholds
-  50 / 100 (Canny's 1:2 ratio). The magnitude used for culling and for the re-observation
-  sigmoid is that same Sobel L2 magnitude, so ``canny_high`` is the paper's ``a``.
-- 3 pyramid levels (paper); residual gate and Huber radius in pixels of each level.
-- Gradient-consistency threshold eta = 0.6 (paper).
-- Edge selection (paper, Algorithm 1): stochastic partition greedy, 512 edges per keyframe.
-  512 keeps the solve well under the preprocessing time it overlaps on a 2-core CPU;
-  ``scripts/ablation_selection.py`` sweeps it. The 4 px grid gives many more non-empty
-  partitions than the budget even on weakly textured frames, so the edge count is the budget,
-  not the texture, and the random partition order follows the edge density (coarser grids
-  force one edge into every textureless cell: worse on fr3_teddy, see the ablation).
-  lambda = 1 only regularises the first picks (one edge's information is ~ (f / Z)^2 ~ 1e5).
-- Levenberg-Marquardt stops a level after 3 rejected tries in a row: each rejection keeps
-  the pose and grows the damping tenfold, so the third asks for a step ~1000x shorter than
-  Gauss-Newton's. On the non-smooth distance fields levels used to end on the iteration
-  budget instead (fr3_teddy: 28.7 of 30 tries per frame, 17.8 of them rejected); stopping
-  after 3 kept the accuracy (ATE over selection seeds 0-5: 8.3 against 9.1 mm).
-- Keyframe rule w1 * t + w2 * t' > 1 with t, t' the RMS optical flow in pixels (with and
-  without rotation) and w1 = 1/50, w2 = 1/25 px^-1: DSO's 0.02 / 0.04 weights, i.e. a new keyframe
-  after ~50 px of general or ~25 px of translational flow; correspondences under 30 % of their
-  running average; 1 s since the last keyframe (paper).
-- Local mapping, on (the paper's method; on fr3_teddy_first200 it lowers the ATE from 8.6 to
-  6.7 mm over selection seeds 0-8, on a 700-frame pingpong of it from 19.3 to 8.4 mm, and
-  costs 60-95 ms per keyframe on a 2-core CPU, not the frames: README, local mapping):
-  a window of 6 keyframes (paper: 5-7), activation per 20 px cell with
-  gradients within 30 degrees (paper); 256 active edges per keyframe (half the tracked ones:
-  n A = 1536 inverse depths keep one LM try at a few ms); 5 pose-only then 5 joint LM tries
-  per keyframe; DSO's rule of dropping a keyframe with under 5 % of its points in view.
-  The depth sensor's inverse depth is a measurement of each edge (sigma 0.01 / m: the
-  Kinect's disparity noise, ~1.4e-3 / m by Khoshelham and Elberink 2012, is constant in
-  inverse depth; an edge's depth pixel sits a pixel or two off the edge (the depth image's
-  registration to the colour one), which on a slanted surface adds ~2e-3 / m per pixel,
-  so it is inflated ~7x). On fr3_teddy, depths held fixed (sigma -> 0) give the same ATE
-  as 0.01 (6.7 mm over seeds 0-3); 0.03 is worse (7.9 mm): the depths absorb pose errors.
-  Only edges whose depth is continuous across them join the window (not in the paper):
-  an edge at a depth step is an occluding contour, which slides over the object as the
-  camera moves, or carries the other side's depth; its point is not fixed, and on fr3_teddy
-  such edges alone shrink the window's translations by ~3 % (README, local mapping).
-  The test: the sensor's inverse depth 1-5 px to either side along the edge's gradient is
-  planar (second difference) within 0.0105 / m = 3 sqrt(6) 1.425e-3 / m, three standard
-  deviations of the second difference of three samples with Khoshelham and Elberink's
-  disparity noise (a plane of any slant passes: inverse depth is affine in the pixels).
-  5 px: a PrimeSense sensor matches its pattern over 9 x 9 pixel windows (Konolige and
-  Mihelich's technical notes on the Kinect), so a depth step spreads up to 4 px around
-  where it is, plus a pixel of Canny localisation; around the shared clips' colour edges
-  the depth steps pile up within 5 px (fr3_teddy), 4 px (fr1_desk), 9 px (fr1_xyz)
-  (``scripts/depth_step_offsets.py``). On fr3_teddy 3 px left 0.8 % of the window's
-  translations short (similarity scale 1.008; 5 px: 1.005); 8 px leaves too few edges
-  (the 700-frame pingpong of fr3_teddy: 12.0 against 8.8 mm).
+``Config`` is hashable (a jit static argument where it is one). Units: pixels of each
+pyramid level for the per-level tuples (``huber_delta``, ``max_residual``), metres for
+depths, 1/m for inverse depths, seconds for time. The defaults follow the EdgeVO paper (and
+DSO for the keyframe weights it adopts); where a default is this project's own, the reason
+and the measurements behind it are in ``docs/decisions.md``.
 """
 
 from __future__ import annotations
@@ -88,7 +42,7 @@ class Config:
     step_tol: float = 1e-5  # stop a level once the update's norm is below this
     max_rejects: int = 3  # stop a level after this many rejected LM tries in a row
     min_inliers: int = 30  # fewer level-0 inliers than this: tracking lost
-    max_covariance_condition: float = 1e6  # lost beyond (TUM frames: 40-400, see README)
+    max_covariance_condition: float = 1e6  # lost beyond this condition number
     recovery_keyframes: int = 3  # earlier keyframes tried after a loss
     # --- keyframes (host) ---
     kf_flow_weight: float = 0.02  # w1, on RMS flow (px)
@@ -96,7 +50,7 @@ class Config:
     kf_min_inlier_ratio: float = 0.3
     kf_max_interval_s: float = 1.0
     # --- local mapping (local_map.py) ---
-    mapping: bool = True  # the sliding window of keyframes (README, local mapping)
+    mapping: bool = True  # the sliding window of keyframes (backend)
     window_size: int = 6  # keyframes (paper: 5-7)
     active_per_keyframe: int = 256  # active edge slots each keyframe brings to the window
     activation_cell: int = 20  # px (paper)

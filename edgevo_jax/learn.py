@@ -33,17 +33,8 @@ Two adjoints, one switch:
   With fewer than 6 inliers at T* (no step was taken) the gradient is zero.
   It is exact when T* is a stationary point of the cost with the decisions that hold at T*
   and the cost is smooth around it: ``newton_decrement(level_system(...)[0])`` at T* is then
-  ~0 (relative to the cost). The plain computation rarely gets there on real frames: LM
-  stops on a bilinear kink or against a jump of the consistency test (decrement ~0.2 for a
-  cost of ~60 on a bundled pair) and the implicit gradient is then an approximation (up to
-  several times off on bundled pairs). With bicubic fields, ``refine=3``, ``step_tol=0`` and
-  float64, on two
-  of three bundled pairs the decrement falls to ~1e-25 and the implicit gradient equals
-  central differences to better than 1e-5 relative and the unrolled one to 1e-6
-  (``tests/test_learn.py``, ``scripts/check_implicit.py``); the parameters that only act on
-  coarse levels (``log_huber[1:]``, the level feature's weight: that feature is 0 at level
-  0) and ``reobs_a`` then have no effect at all. On the third pair (5 frames apart) the
-  rounds cycle between two sets of decisions and never settle: check the decrement.
+  ~0 (relative to the cost); check it (``docs/decisions.md`` says how often the plain and the
+  refined computations get there).
 
 Hard decisions are constants in the backward pass, in both adjoints: the residual gate
 (r <= max_residual), visibility, the validity of edges, which keyframe and which edges were

@@ -14,8 +14,8 @@
    whole partition are one batched quadratic form, and A^-1 follows by Sherman-Morrison.
    The Jacobians use the mean inverse depth of each partition's candidates: neighbouring
    pixels of one edge differ in depth mostly by sensor noise, and ranking them by it picks the
-   pixel whose noise makes it look nearest (a biased, winner's-curse choice; on fr3_teddy it
-   raised ATE by ~30 %).
+   pixel whose noise makes it look nearest (a biased, winner's-curse choice:
+   ``docs/decisions.md``).
 
 Modes (``Config.selection``): ``spg`` (above), ``greedy`` (stochastic greedy on the same
 objective over all candidates, no partitions: it clusters), ``random`` (a uniform subset) and
