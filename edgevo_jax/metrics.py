@@ -8,12 +8,14 @@ alignment for the ATE, and the relative pose error over a fixed time interval.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
 from edgevo_jax.io import poses7_to_matrices
 
-__all__ = ["associate_timestamps", "ate", "horn_align", "rpe"]
+__all__ = ["TrajectoryAlignment", "align_trajectory", "associate_timestamps", "ate", "horn_align",
+           "rpe"]
 
 
 def _stamps(name: str, t: np.ndarray) -> np.ndarray:
@@ -126,6 +128,61 @@ def _stats(err: np.ndarray) -> dict[str, float]:
     }
 
 
+class TrajectoryAlignment(NamedTuple):
+    """An estimated trajectory rigidly aligned onto the ground truth as the ATE aligns it.
+
+    est_t (N,) s and est_xyz (3, N) m: every estimated position, aligned (R @ p + t) into the
+    ground truth's world frame; gt_t (M,) s and gt_xyz (3, M) m: the ground-truth positions;
+    pairs (K, 2): associated (ground-truth index, estimate index), K >= 3; error (K,) m: the
+    per-pair position error after alignment (its RMS is the ATE RMSE); R (3, 3), t (3,): the
+    alignment, mapping estimate world coordinates into the ground-truth world frame.
+    """
+
+    est_t: np.ndarray
+    est_xyz: np.ndarray
+    gt_t: np.ndarray
+    gt_xyz: np.ndarray
+    pairs: np.ndarray
+    error: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+
+    @property
+    def rmse(self) -> float:
+        """ATE RMSE (m): the root mean square of ``error``."""
+        return float(np.sqrt(np.mean(self.error ** 2)))
+
+
+def align_trajectory(
+    gt_t: np.ndarray, gt_poses7: np.ndarray, est_t: np.ndarray, est_poses7: np.ndarray,
+    *, max_diff: float = 0.02,
+) -> TrajectoryAlignment:
+    """Associate an estimate with the ground truth and align it rigidly, as TUM's
+    ``evaluate_ate.py`` does (the alignment :func:`ate` measures).
+
+    gt_t (M,), est_t (N,): timestamps in seconds; gt_poses7 (M, 7), est_poses7 (N, 7):
+    ``tx ty tz qx qy qz qw`` of T_world_cam (metres), each in its own world frame. Timestamps
+    are associated within ``max_diff`` seconds (TUM ``associate.py``), the associated
+    estimated positions aligned onto the ground truth by :func:`horn_align` (rigid, no
+    scale). ValueError when fewer than 3 poses associate.
+    """
+    gt_ts, gt_p = _trajectory("ground truth", gt_t, gt_poses7)
+    est_ts, est_p = _trajectory("estimate", est_t, est_poses7)
+    pairs = associate_timestamps(gt_ts, est_ts, max_diff)
+    if pairs.shape[0] < 3:
+        raise ValueError(
+            f"ATE needs at least 3 associated poses, got {pairs.shape[0]} "
+            f"(ground truth {gt_ts.size} poses, estimate {est_ts.size} poses, "
+            f"max_diff {max_diff} s): do the timestamps overlap?"
+        )
+    gt_xyz = gt_p[:, :3].T
+    est_raw = est_p[:, :3].T
+    R, t = horn_align(est_raw[:, pairs[:, 1]], gt_xyz[:, pairs[:, 0]])
+    est_xyz = R @ est_raw + t[:, None]
+    error = np.linalg.norm(est_xyz[:, pairs[:, 1]] - gt_xyz[:, pairs[:, 0]], axis=0)
+    return TrajectoryAlignment(est_ts, est_xyz, gt_ts, gt_xyz, pairs, error, R, t)
+
+
 def ate(
     gt_t: np.ndarray,
     gt_poses7: np.ndarray,
@@ -140,20 +197,8 @@ def ate(
     and returns statistics of the translation error norms: ``rmse``, ``mean``, ``median``,
     ``std``, ``min``, ``max`` and ``n`` (associated pairs). ValueError if fewer than 3 pairs.
     """
-    gt_ts, gt_ps = _trajectory("ground truth", gt_t, gt_poses7)
-    est_ts, est_ps = _trajectory("estimate", est_t, est_poses7)
-    pairs = associate_timestamps(gt_ts, est_ts, max_diff)
-    if pairs.shape[0] < 3:
-        raise ValueError(
-            f"ATE needs at least 3 associated poses, got {pairs.shape[0]} "
-            f"(ground truth {gt_ts.size} poses, estimate {est_ts.size} poses, "
-            f"max_diff {max_diff} s): do the timestamps overlap?"
-        )
-    gt_xyz = gt_ps[pairs[:, 0], :3].T
-    est_xyz = est_ps[pairs[:, 1], :3].T
-    r, t = horn_align(est_xyz, gt_xyz)
-    err = np.linalg.norm(r @ est_xyz + t[:, None] - gt_xyz, axis=0)
-    return {**_stats(err), "n": int(pairs.shape[0])}
+    al = align_trajectory(gt_t, gt_poses7, est_t, est_poses7, max_diff=max_diff)
+    return {**_stats(al.error), "n": int(al.pairs.shape[0])}
 
 
 def _inv_se3(t: np.ndarray) -> np.ndarray:

@@ -6,8 +6,8 @@ global backend switch, no display needed); each function writes one PNG and retu
 The ``edgevo plot`` command (``edgevo_jax.cli``) makes each figure with one command line.
 
 - :func:`plot_trajectory`: estimated trajectory vs ground truth after the ATE's rigid
-  alignment (:func:`align_trajectory`), top view and x / y / z over time, coloured by the
-  per-pose error.
+  alignment (:func:`edgevo_jax.metrics.align_trajectory`), top view and x / y / z over
+  time, coloured by the per-pose error.
 - :func:`plot_frame`: one pre-processed frame: gray image, Canny edges coloured by gradient
   magnitude, nearest-edge gradient direction and the distance-field pyramid (EdgeVO Fig. 3).
 - :func:`plot_selection_overlay`: selected edges over the gray image, one panel per selection
@@ -25,11 +25,11 @@ import math
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .metrics import associate_timestamps, horn_align
+from .metrics import TrajectoryAlignment, align_trajectory
 
 if TYPE_CHECKING:  # only for annotations: viz sits beside preprocess, not above it
     from .preprocess import Frame
@@ -261,65 +261,6 @@ def plot_ablation(records: Sequence[Mapping[str, Any]], path: str | os.PathLike[
 # ---------------------------------------------------------------------------- trajectory
 
 _AXES = {"x": 0, "y": 1, "z": 2}
-
-
-class TrajectoryAlignment(NamedTuple):
-    """An estimated trajectory rigidly aligned onto the ground truth as the ATE aligns it.
-
-    est_t (N,) s and est_xyz (3, N) m: every estimated position, aligned (R @ p + t) into the
-    ground truth's world frame; gt_t (M,) s and gt_xyz (3, M) m: the ground-truth positions;
-    pairs (K, 2): associated (ground-truth index, estimate index), K >= 3; error (K,) m: the
-    per-pair position error after alignment (its RMS is the ATE RMSE); R (3, 3), t (3,): the
-    alignment, mapping estimate world coordinates into the ground-truth world frame.
-    """
-
-    est_t: np.ndarray
-    est_xyz: np.ndarray
-    gt_t: np.ndarray
-    gt_xyz: np.ndarray
-    pairs: np.ndarray
-    error: np.ndarray
-    R: np.ndarray
-    t: np.ndarray
-
-    @property
-    def rmse(self) -> float:
-        """ATE RMSE (m): the root mean square of ``error``."""
-        return float(np.sqrt(np.mean(self.error ** 2)))
-
-
-def align_trajectory(
-    gt_t: np.ndarray, gt_poses7: np.ndarray, est_t: np.ndarray, est_poses7: np.ndarray,
-    *, max_diff: float = 0.02,
-) -> TrajectoryAlignment:
-    """Align an estimate onto the ground truth exactly as :func:`edgevo_jax.metrics.ate` does.
-
-    gt_t (M,), est_t (N,): timestamps in seconds; gt_poses7 (M, 7), est_poses7 (N, 7):
-    ``tx ty tz qx qy qz qw`` of T_world_cam (metres), each in its own world frame. Timestamps
-    are associated within ``max_diff`` seconds (TUM ``associate.py``), the associated
-    estimated positions aligned onto the ground truth by :func:`edgevo_jax.metrics.horn_align`
-    (rigid, no scale). ValueError when fewer than 3 poses associate.
-    """
-    gt_ts = np.asarray(gt_t, np.float64)
-    est_ts = np.asarray(est_t, np.float64)
-    gt_p = np.asarray(gt_poses7, np.float64).reshape(-1, 7)
-    est_p = np.asarray(est_poses7, np.float64).reshape(-1, 7)
-    if gt_p.shape[0] != gt_ts.shape[0] or est_p.shape[0] != est_ts.shape[0]:
-        raise ValueError(
-            f"poses and timestamps differ in length: ground truth {gt_p.shape[0]} vs "
-            f"{gt_ts.shape[0]}, estimate {est_p.shape[0]} vs {est_ts.shape[0]}")
-    pairs = associate_timestamps(gt_ts, est_ts, max_diff)
-    if pairs.shape[0] < 3:
-        raise ValueError(
-            f"the trajectory plot needs at least 3 estimated poses within {max_diff} s of a "
-            f"ground-truth pose, got {pairs.shape[0]} (ground truth {gt_ts.size} poses, "
-            f"estimate {est_ts.size} poses): do the timestamps overlap?")
-    gt_xyz = gt_p[:, :3].T
-    est_raw = est_p[:, :3].T
-    R, t = horn_align(est_raw[:, pairs[:, 1]], gt_xyz[:, pairs[:, 0]])
-    est_xyz = R @ est_raw + t[:, None]
-    error = np.linalg.norm(est_xyz[:, pairs[:, 1]] - gt_xyz[:, pairs[:, 0]], axis=0)
-    return TrajectoryAlignment(est_ts, est_xyz, gt_ts, gt_xyz, pairs, error, R, t)
 
 
 def plot_trajectory(

@@ -149,7 +149,7 @@ def test_plot_trajectory_rejects_bad_input(tmp_path: Path) -> None:
     gt_t, gt_p, est_t, est_p = synthetic_trajectories()
     with pytest.raises(ValueError, match="plane"):
         plot_trajectory(gt_t, gt_p, est_t, est_p, tmp_path / "a.png", plane="xx")
-    with pytest.raises(ValueError, match="at least 3 estimated poses"):
+    with pytest.raises(ValueError, match="at least 3 associated poses"):
         plot_trajectory(gt_t, gt_p, est_t + 50.0, est_p, tmp_path / "b.png")
     assert not list(tmp_path.iterdir())
 
