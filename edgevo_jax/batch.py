@@ -54,7 +54,7 @@ from .interp import stack_edge_maps
 from .preprocess import Frame, preprocess
 from .runner import initial_pose
 from .solve import KeyframeEdges, solve_structure
-from .tracker import LOST, FrameResult, FrameResults, Odometry
+from .tracker import FrameResult, FrameResults, Odometry
 
 #: Config fields that change the pre-processed frames (runs differing in them do not share).
 PREPROCESS_FIELDS = ("blur_ksize", "blur_sigma", "canny_low", "canny_high", "min_depth",
@@ -72,6 +72,10 @@ class BatchRun(FrameResults):
     config: Config
     results: list[FrameResult] = field(default_factory=list)
     num_keyframes: int = 0
+
+    def summary_fields(self) -> dict:
+        """The run's own fields for ``runner.summarise``: its configuration's index."""
+        return {"config_index": self.config_index}
 
 
 @dataclass
@@ -235,7 +239,7 @@ def evaluate(
     try:
         while True:
             for lane in mine:  # first frames (and frames before any usable keyframe)
-                while not lane.done and lane.odo._kf is None:
+                while not lane.done and not lane.odo.has_keyframe:
                     i = lane.position
                     lane.run.results.append(
                         lane.odo.track_frame(lane.frames[i], lane.timestamps[i]))
@@ -257,7 +261,7 @@ def evaluate(
             groups: dict[int, list[int]] = {}
             for b, lane in enumerate(mine):
                 if lane.odo.num_keyframes:
-                    groups.setdefault(lane.odo.chunk_inputs()[0].valid.shape[0], []).append(b)
+                    groups.setdefault(lane.odo.solve_inputs()[0].valid.shape[0], []).append(b)
             for members in groups.values():
                 if not any(stepping[b] for b in members):
                     continue
@@ -309,7 +313,7 @@ def _stack_inputs(lanes: list[_Lane], srcs: list[_Frames], slowest: list[int], w
     source from its slowest run on (the last frame repeated past the end)."""
     per_lane = []
     for lane in lanes:
-        kf, A, B, intr, knobs = lane.odo.chunk_inputs()
+        kf, A, B, intr, knobs = lane.odo.solve_inputs()
         s = srcs.index(lane.frames)
         offset = np.int32(min(max(lane.position - slowest[s], 0), width - 1))
         per_lane.append((KeyframeEdges(*(np.asarray(a) for a in kf)), np.int32(s), offset,
@@ -326,25 +330,6 @@ def _stack_inputs(lanes: list[_Lane], srcs: list[_Frames], slowest: list[int], w
                         for lv in range(levels))
     window_ng = stack_edge_maps([stack_edge_maps([f.edge_map for f in fs]) for fs in frames])
     return kf, window_dist, window_ng, source, offset, A, B, Intrinsics(*intr.T), knobs
-
-
-def summary(run: BatchRun, seq: TumSequence) -> dict:
-    """ATE / RPE (when the sequence has ground truth), frames, keyframes and lost frames of
-    one run, with the configuration's fields."""
-    from .io import matrices_to_poses7
-    from .metrics import ate, rpe
-
-    out: dict = {"sequence": run.sequence, "config_index": run.config_index,
-                 "frames": len(run.results), "keyframes": run.num_keyframes,
-                 "lost": sum(r.state == LOST for r in run.results),
-                 "config": dataclasses.asdict(run.config)}
-    if seq.groundtruth is not None and len(run.results) >= 3:
-        gt_t, gt_p = seq.groundtruth
-        est = matrices_to_poses7(run.poses)
-        out["ate_rmse_m"] = ate(gt_t, gt_p, run.timestamps, est)["rmse"]
-        r = rpe(gt_t, gt_p, run.timestamps, est)
-        out["rpe_rmse_m_per_s"] = r["trans_rmse_m_per_s"]
-    return out
 
 
 def load_configs(path: str | Path, base: Config | None = None) -> list[Config]:

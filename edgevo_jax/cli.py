@@ -186,7 +186,7 @@ def _batch(args: argparse.Namespace) -> int:
     from . import batch
     from .datasets.tum import load_sequence
     from .io import matrices_to_poses7, write_trajectory
-    from .runner import enable_compilation_cache
+    from .runner import enable_compilation_cache, summarise
 
     configs = batch.load_configs(args.configs)
     enable_compilation_cache()
@@ -196,7 +196,7 @@ def _batch(args: argparse.Namespace) -> int:
     by_name = {s.name: s for s in seqs}
     rows = []
     for run in result.runs:
-        row = batch.summary(run, by_name[run.sequence])
+        row = summarise(run, by_name[run.sequence])
         row["changed"] = batch.changed_fields(run.config)
         if args.traj_dir is not None:
             args.traj_dir.mkdir(parents=True, exist_ok=True)

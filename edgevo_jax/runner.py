@@ -1,5 +1,5 @@
 """Running the tracker over a whole TUM sequence: decoding, pipelining, trajectory file,
-progress bar and the run's statistics.
+progress bar and the run's statistics; and tracking in device-side chunks (the scan).
 
 Frame i is decoded, frame i-1 submitted to the device, frame i's edges found and its distance
 transform started on a worker thread; frame i-1 is completed (its solve result read back,
@@ -19,15 +19,20 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import jax
 import numpy as np
 from tqdm import tqdm
 
+from .chunk import track_chunk_jit
 from .config import Config
 from .datasets.tum import TumSequence, groundtruth_pose_at
+from .hostmem import aligned_stack, to_host
+from .interp import stack_edge_maps
 from .io import TrajectoryWriter, matrices_to_poses7, poses7_to_matrices
 from .metrics import ate, rpe
 from .params import Params
-from .preprocess import start_preprocess
+from .preprocess import Frame, start_preprocess
+from .solve import TrackResult
 from .tracker import LOST, OK, WEAK, FrameResult, FrameResults, Odometry
 
 
@@ -44,6 +49,31 @@ class RunResult(FrameResults):
     num_keyframes: int = 0
     stopped_at: int | None = None  # index of the first frame not processed, if interrupted
     config: Config | None = None
+
+    def summary_fields(self) -> dict:
+        """Timing statistics for ``summarise``. ms_per_frame covers warm frames: from the
+        third on (the first only becomes the keyframe, the second compiles), image decoding
+        excluded; select_ms covers every keyframe but the first (whose selection compiles);
+        mapping_ms every keyframe after the first window_size + 1 (activation, refinement
+        and marginalisation compile on those)."""
+        warm = np.asarray(self.frame_ms[2:], np.float64)
+        mapping_warm = self.config.window_size + 1 if self.config is not None else 0
+        out = {
+            "compile_s": self.compile_s,
+            "ms_per_frame": _describe(warm),
+            "preprocess_ms": _describe([r.preprocess_ms for r in self.results[2:]]),
+            "solve_wait_ms": _describe([r.solve_ms for r in self.results[2:]]),
+            "decode_ms": _describe(self.decode_ms[2:]),
+            "select_ms": _describe(
+                [r.select_ms for r in self.results if r.select_ms is not None][1:]),
+            "mapping_ms": _describe(
+                [r.mapping_ms for r in self.results if r.mapping_ms is not None][mapping_warm:]),
+            "edges_used_mean": float(np.mean([r.edges_used for r in self.results[1:]]))
+            if len(self.results) > 1 else float("nan"),
+        }
+        if self.stopped_at is not None:
+            out["stopped_at_frame"] = self.stopped_at
+        return out
 
 
 def enable_compilation_cache() -> str | None:
@@ -135,22 +165,60 @@ def run_sequence(
     return run
 
 
+def track_in_chunks(odo: Odometry, frames: list[Frame], timestamps: list[float], *,
+                    size: int) -> list[FrameResult]:
+    """Track pre-processed frames with the scan tracker (``chunk.track_chunk``): chunks of
+    ``size`` frames (the last one padded by repetition) are tracked on the device against
+    the current keyframe in one call each; the host then concludes them in order and, at the
+    first frame that changes the state (a new keyframe, a loss, a recovery), drops the rest
+    of the chunk and tracks it again from there. Gives the trajectory of
+    ``odo.track_frame`` called frame by frame."""
+    if len(frames) != len(timestamps):
+        raise ValueError(f"{len(frames)} frames but {len(timestamps)} timestamps")
+    results: list[FrameResult] = []
+    i = 0
+    while i < len(frames):
+        if not odo.has_keyframe:
+            results.append(odo.track_frame(frames[i], timestamps[i]))
+            i += 1
+            continue
+        todo = frames[i:i + size]
+        t_submit = time.perf_counter()
+        out = to_host(dispatch_chunk(odo, todo, size))
+        for j in range(len(todo)):
+            res = jax.tree.map(lambda a, j=j: a[j], out)
+            result, plain = odo.accept(todo[j], timestamps[i + j], res, t_submit=t_submit)
+            results.append(result)
+            if not plain:
+                break
+        i += j + 1
+    return results
+
+
+def dispatch_chunk(odo: Odometry, frames: list[Frame], size: int) -> TrackResult:
+    """Dispatch the scan over ``frames`` (at most ``size``, padded to it by repeating the
+    last) against ``odo``'s current keyframe; returns device arrays (C leading)."""
+    if not 0 < len(frames) <= size:
+        raise ValueError(f"a chunk takes 1 to {size} frames, got {len(frames)}")
+    frames = list(frames) + [frames[-1]] * (size - len(frames))
+    dist = tuple(aligned_stack([f.dist[lv] for f in frames])
+                 for lv in range(len(frames[0].dist)))
+    ng = stack_edge_maps([f.edge_map for f in frames])
+    kf, A, B, intr, knobs = odo.solve_inputs()
+    return track_chunk_jit(kf, dist, ng, A, B, intr, knobs, config=odo.structure)
+
+
 def _record(run: RunResult, result: FrameResult, writer: TrajectoryWriter | None) -> None:
     run.results.append(result)
     if writer is not None:
         writer.write(result.timestamp, matrices_to_poses7(result.pose[None])[0])
 
 
-def summarise(run: RunResult, seq: TumSequence) -> dict:
-    """The run's statistics (the CLI's ``--stats`` JSON).
-
-    ms_per_frame covers warm frames: from the third on (the first only becomes the keyframe,
-    the second compiles), image decoding excluded; select_ms covers every keyframe but the
-    first (whose selection compiles); mapping_ms every keyframe after the first
-    window_size + 1 (activation, refinement and marginalisation compile on those).
-    """
-    warm = np.asarray(run.frame_ms[2:], np.float64)
-    mapping_warm = run.config.window_size + 1 if run.config is not None else 0
+def summarise(run: FrameResults, seq: TumSequence) -> dict:
+    """A run's statistics (the CLI's ``--stats`` JSON; one row of ``edgevo batch``): counts
+    of frames, keyframes, lost and weak frames and their reasons, the run's own fields
+    (``RunResult``: timings; ``BatchRun``: its configuration's index), the configuration,
+    and ATE / RPE against the sequence's ground truth when it has one."""
     stats: dict = {
         "sequence": seq.name,
         "frames": len(run.results),
@@ -159,22 +227,9 @@ def summarise(run: RunResult, seq: TumSequence) -> dict:
         "weak": sum(r.state == WEAK for r in run.results),
         "flags": dict(Counter(f"{r.state}: {r.reason}" for r in run.results
                               if r.state != OK)),
-        "compile_s": run.compile_s,
-        "ms_per_frame": _describe(warm),
-        "preprocess_ms": _describe([r.preprocess_ms for r in run.results[2:]]),
-        "solve_wait_ms": _describe([r.solve_ms for r in run.results[2:]]),
-        "decode_ms": _describe(run.decode_ms[2:]),
-        # the first keyframe's selection compiles: leave it out as the first frames are
-        "select_ms": _describe([r.select_ms for r in run.results if r.select_ms is not None][1:]),
-        # per keyframe; the first window_size keyframes compile the window's programs
-        "mapping_ms": _describe(
-            [r.mapping_ms for r in run.results if r.mapping_ms is not None][mapping_warm:]),
-        "edges_used_mean": float(np.mean([r.edges_used for r in run.results[1:]]))
-        if len(run.results) > 1 else float("nan"),
+        **run.summary_fields(),
         "config": dataclasses.asdict(run.config) if run.config is not None else None,
     }
-    if run.stopped_at is not None:
-        stats["stopped_at_frame"] = run.stopped_at
     if seq.groundtruth is not None and len(run.results) < 3:
         stats["ground_truth_note"] = f"only {len(run.results)} frames tracked, ATE needs 3"
     if seq.groundtruth is not None and len(run.results) >= 3:

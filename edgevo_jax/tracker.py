@@ -15,12 +15,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from .camera import Intrinsics
-from .chunk import track_chunk_jit, track_next_jit
+from .chunk import track_next_jit
 from .config import Config
 from .determinism import full_precision
 from .geometry import inverse_np, orthonormalise_np, scale_motion_np
-from .hostmem import aligned_array, aligned_stack, to_host
-from .interp import stack_edge_maps
+from .hostmem import aligned_array, to_host
 from .keyframes import keyframe_reason
 from .local_map import LocalMap
 from .params import Params, solve_knobs_of
@@ -59,9 +58,17 @@ class FrameResult:
 
 
 class FrameResults:
-    """Mixin for a run's ``results`` (list of FrameResult): its timestamps and poses."""
+    """Mixin for a run's ``results`` (list of FrameResult): its timestamps and poses; a run
+    also has ``config`` and ``num_keyframes``, and ``summary_fields`` (its own statistics
+    for ``runner.summarise``)."""
 
     results: list[FrameResult]
+    config: Config | None
+    num_keyframes: int
+
+    def summary_fields(self) -> dict:
+        """Statistics of this kind of run beyond the common ones (none here)."""
+        return {}
 
     @property
     def timestamps(self) -> np.ndarray:
@@ -185,59 +192,31 @@ class Odometry:
         res = to_host(pending.output)
         return self._conclude(pending, res, time.perf_counter())[0]
 
-    def track_chunk(self, frames: list[Frame], timestamps: list[float], *, size: int
-                    ) -> list[FrameResult]:
-        """Track pre-processed frames with the scan tracker (``chunk.track_chunk``): chunks
-        of ``size`` frames (the last one padded by repetition) are tracked on the device
-        against the current keyframe in one call each; the host then concludes them in order
-        and, at the first frame that changes the state (a new keyframe, a loss, a
-        recovery), drops the rest of the chunk and tracks it again from there. Gives the
-        trajectory of ``track_frame`` called frame by frame."""
-        if len(frames) != len(timestamps):
-            raise ValueError(f"{len(frames)} frames but {len(timestamps)} timestamps")
-        results: list[FrameResult] = []
-        i = 0
-        while i < len(frames):
-            if self._kf is None:
-                results.append(self.track_frame(frames[i], timestamps[i]))
-                i += 1
-                continue
-            todo = frames[i:i + size]
-            t_submit = time.perf_counter()
-            out = to_host(self.dispatch_chunk(todo, size))
-            for j in range(len(todo)):
-                res = jax.tree.map(lambda a, j=j: a[j], out)
-                result, plain = self.accept(todo[j], timestamps[i + j], res, t_submit=t_submit)
-                results.append(result)
-                if not plain:
-                    break
-            i += j + 1
-        return results
+    @property
+    def has_keyframe(self) -> bool:
+        """Whether a keyframe exists (frames are solved against it from then on)."""
+        return self._kf is not None
 
-    def chunk_inputs(self) -> tuple[KeyframeEdges, np.ndarray, np.ndarray, Intrinsics, object]:
-        """What the scan needs besides the frames: keyframe edges, A, B (see ``_rel``),
-        intrinsics and the solve knobs (``batch.py`` stacks these over runs)."""
+    @property
+    def structure(self) -> object:
+        """The static part of the solve (a jit static argument; see ``solve_inputs``)."""
+        return self._static
+
+    def solve_inputs(self) -> tuple[KeyframeEdges, np.ndarray, np.ndarray, Intrinsics, object]:
+        """What a solve of the next frames needs besides the frames, for solves made
+        elsewhere (``runner.track_in_chunks``, ``batch.evaluate``) and concluded by
+        ``accept``: the keyframe's edges, A = T_(i-1)_kf and B = T_(i-2)_kf (float32, the
+        constant-velocity prediction's inputs, ``chunk.predict``), the intrinsics and the
+        solve's numbers. RuntimeError before the first keyframe."""
         if self._kf is None:
             raise RuntimeError("no keyframe yet: track the first frame with track_frame")
         return (self._kf.edges, *self._rel, self.intrinsics, self.knobs)
-
-    def dispatch_chunk(self, frames: list[Frame], size: int) -> TrackResult:
-        """Dispatch the scan over ``frames`` (at most ``size``, padded to it by repeating
-        the last) against the current keyframe; returns device arrays (C leading)."""
-        if not 0 < len(frames) <= size:
-            raise ValueError(f"a chunk takes 1 to {size} frames, got {len(frames)}")
-        frames = list(frames) + [frames[-1]] * (size - len(frames))
-        dist = tuple(aligned_stack([f.dist[lv] for f in frames])
-                     for lv in range(len(frames[0].dist)))
-        ng = stack_edge_maps([f.edge_map for f in frames])
-        kf, A, B, intr, knobs = self.chunk_inputs()
-        return track_chunk_jit(kf, dist, ng, A, B, intr, knobs, config=self._static)
 
     def accept(self, frame: Frame, timestamp: float, res: TrackResult, *,
                preprocess_ms: float = 0.0, t_submit: float | None = None
                ) -> tuple[FrameResult, bool]:
         """Conclude a frame whose solve ``res`` (host arrays) was computed elsewhere (the
-        scan, a batch) from this tracker's current ``chunk_inputs``. Returns its result and
+        scan, a batch) from this tracker's current ``solve_inputs``. Returns its result and
         whether the state went on plainly (False: a keyframe, a loss or a recovery changed
         it, and later results of the same chunk are stale)."""
         timestamp = float(timestamp)

@@ -37,7 +37,7 @@ import numpy as np
 from edgevo_jax import Config, batch, enable_batch_exact
 from edgevo_jax.datasets import load_sequence
 from edgevo_jax.io import json_safe
-from edgevo_jax.runner import run_sequence
+from edgevo_jax.runner import run_sequence, summarise
 
 DEFAULT_SEQ = (Path(__file__).resolve().parents[2] / "shared" / "data" / "tum"
                / "rgbd_dataset_freiburg3_teddy_first200")
@@ -88,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     frames = len(r_one.runs[0].results)
     runs = []
     for run in r_all.runs:
-        row = batch.summary(run, seq)
+        row = summarise(run, seq)
         row["changed"] = batch.changed_fields(run.config)
         if args.check:
             alone = run_sequence(seq, run.config, progress=False, max_frames=args.max_frames)

@@ -16,7 +16,7 @@ from edgevo_jax.chunk import predict, rigid_inverse
 from edgevo_jax.cli import BUNDLED_CLIP
 from edgevo_jax.datasets import load_sequence
 from edgevo_jax.preprocess import preprocess
-from edgevo_jax.runner import initial_pose
+from edgevo_jax.runner import dispatch_chunk, initial_pose, track_in_chunks
 
 twists = st.lists(st.floats(-0.5, 0.5), min_size=6, max_size=6)
 
@@ -60,7 +60,7 @@ def test_scan_tracker_gives_the_frame_by_frame_trajectory(bundled_frames, size):
     seq, config, frames, ts = bundled_frames
     ref, odo_ref = _frame_by_frame(seq, config, frames, ts)
     odo = Odometry(config, seq.intrinsics, initial_pose(seq))
-    got = odo.track_chunk(frames, ts, size=size)
+    got = track_in_chunks(odo, frames, ts, size=size)
     assert odo_ref.num_keyframes >= 2  # the clip makes a keyframe part-way: chunks are cut
     assert [r.keyframe for r in got] == [r.keyframe for r in ref]
     assert [r.state for r in got] == [r.state for r in ref]
@@ -76,7 +76,7 @@ def test_scan_tracker_on_a_longer_shared_clip(shared_clip):
     ts = [float(t) for t in seq.timestamps[:60]]
     ref, odo_ref = _frame_by_frame(seq, config, frames, ts)
     odo = Odometry(config, seq.intrinsics, initial_pose(seq))
-    got = odo.track_chunk(frames, ts, size=4)
+    got = track_in_chunks(odo, frames, ts, size=4)
     assert odo_ref.num_keyframes > 5
     err = np.abs(np.array([r.pose for r in got]) - np.array([r.pose for r in ref]))
     assert err[:, :3, 3].max() <= 1e-6
@@ -86,9 +86,9 @@ def test_chunk_errors(bundled_frames):
     seq, config, frames, ts = bundled_frames
     odo = Odometry(config, seq.intrinsics)
     with pytest.raises(RuntimeError, match="no keyframe yet"):
-        odo.chunk_inputs()
+        odo.solve_inputs()
     with pytest.raises(ValueError, match="2 frames but 1 timestamps"):
-        odo.track_chunk(frames[:2], ts[:1], size=2)
+        track_in_chunks(odo, frames[:2], ts[:1], size=2)
     odo.track_frame(frames[0], ts[0])
     with pytest.raises(ValueError, match="a chunk takes 1 to 2 frames"):
-        odo.dispatch_chunk(frames[:3], 2)
+        dispatch_chunk(odo, frames[:3], 2)
