@@ -225,7 +225,7 @@ def evaluate(
             if key not in sources:
                 sources[key] = _Frames(seq, config, n)
             run = BatchRun(seq.name, c, config)
-            odo = Odometry(config, seq.intrinsics, initial_pose(seq))
+            odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq))
             lanes.append(_Lane(run, odo, sources[key], np.asarray(seq.timestamps[:n])))
     mine = lanes[jax.process_index()::jax.process_count()]
     devices = list(jax.local_devices() if devices is None else devices)

@@ -111,7 +111,7 @@ def run_sequence(
     """Track every associated frame of ``seq``; write the TUM trajectory to ``out`` line by
     line (flushed; renamed into place at the end). Returns the per-frame results.
     ``params``: learnt parameters for the tracker (``tracker.Odometry``; None: the config's)."""
-    odo = Odometry(config, seq.intrinsics, initial_pose(seq), params=params)
+    odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq), params=params)
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
     run = RunResult(config=config)
     writer = TrajectoryWriter(out) if out is not None else None

@@ -119,7 +119,7 @@ class Odometry:
     """
 
     def __init__(
-        self, config: Config, intrinsics: Intrinsics, initial_pose: np.ndarray | None = None,
+        self, config: Config, intrinsics: Intrinsics, *, initial_pose: np.ndarray | None = None,
         params: Params | None = None,
     ) -> None:
         self.config = config

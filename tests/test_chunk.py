@@ -50,7 +50,7 @@ def bundled_frames():
 
 
 def _frame_by_frame(seq, config, frames, ts):
-    odo = Odometry(config, seq.intrinsics, initial_pose(seq))
+    odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq))
     return [odo.track_frame(f, t) for f, t in zip(frames, ts, strict=True)], odo
 
 
@@ -59,7 +59,7 @@ def test_scan_tracker_gives_the_frame_by_frame_trajectory(bundled_frames, size):
     """Chunks cut at keyframes and re-tracked: same poses, states and keyframes."""
     seq, config, frames, ts = bundled_frames
     ref, odo_ref = _frame_by_frame(seq, config, frames, ts)
-    odo = Odometry(config, seq.intrinsics, initial_pose(seq))
+    odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq))
     got = track_in_chunks(odo, frames, ts, size=size)
     assert odo_ref.num_keyframes >= 2  # the clip makes a keyframe part-way: chunks are cut
     assert [r.keyframe for r in got] == [r.keyframe for r in ref]
@@ -75,7 +75,7 @@ def test_scan_tracker_on_a_longer_shared_clip(shared_clip):
     frames = [preprocess(*seq.load_frame(i), config) for i in range(60)]
     ts = [float(t) for t in seq.timestamps[:60]]
     ref, odo_ref = _frame_by_frame(seq, config, frames, ts)
-    odo = Odometry(config, seq.intrinsics, initial_pose(seq))
+    odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq))
     got = track_in_chunks(odo, frames, ts, size=4)
     assert odo_ref.num_keyframes > 5
     err = np.abs(np.array([r.pose for r in got]) - np.array([r.pose for r in ref]))

@@ -376,7 +376,7 @@ def test_non_finite_user_pose(tmp_path, capsys):
     pose[1, 3] = np.nan
     intr = Intrinsics(517.3, 516.5, 318.6, 255.3)
     with pytest.raises(ValueError, match="initial_pose.*finite"):
-        Odometry(Config(), intr, pose)
+        Odometry(Config(), intr, initial_pose=pose)
     est = tmp_path / "est.txt"
     est.write_text("1305031102.175304 0 0 0 0 0 0 1\n1305031102.211214 0 inf 0 0 0 0 1\n")
     gt = BUNDLED_CLIP / "groundtruth.txt"
