@@ -48,6 +48,7 @@ from .config import Config
 from .interp import EdgeMap, bilinear, bilinear_with_grad
 from .residuals import consistency_dots_known
 from .robust import huber_cost, huber_weights
+from .schur import eliminate_diagonal, marginalize, schur_solve
 
 
 class WindowProblem(NamedTuple):
@@ -371,67 +372,6 @@ def normal_equations(
     return _with_depth_prior(_blocks(e, considered, inl, cfg), problem, cfg, hosts)
 
 
-def schur_solve(
-    H_cc: jnp.ndarray, H_cp: jnp.ndarray, h_pp: jnp.ndarray, b_c: jnp.ndarray,
-    b_p: jnp.ndarray, damping: float | jnp.ndarray, *, min_h: float = 1e-12,
-) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """Solve (H + damping diag(H)) delta = -b for H = [[H_cc, H_cp], [H_cp^T, diag(h_pp)]]
-    by eliminating the diagonal depth block (Schur complement):
-
-        S = A_cc - H_cp D^-1 H_cp^T,  S delta_c = -(b_c - H_cp D^-1 b_p),
-        delta_p = -D^-1 (b_p + H_cp^T delta_c),
-
-    with A_cc = H_cc + damping diag(H_cc), D = (1 + damping) h_pp. Depths with D <= min_h
-    (padding slots, unobserved edges; their H_cp columns are then zero too) get delta 0.
-    """
-    d = (1.0 + damping) * h_pp
-    seen = d > min_h
-    inv = jnp.where(seen, 1.0 / jnp.where(seen, d, 1.0), 0.0)
-    A_cc = H_cc + damping * jnp.diag(jnp.diag(H_cc))
-    W = H_cp * inv
-    S = A_cc - W @ H_cp.T
-    S = 0.5 * (S + S.T)
-    delta_c = -jnp.linalg.solve(S, b_c - W @ b_p)
-    delta_p = -inv * (b_p + H_cp.T @ delta_c)
-    return delta_c, delta_p
-
-
-def _index(idx: np.ndarray | jnp.ndarray, size: int) -> np.ndarray:
-    idx = np.asarray(idx)
-    if idx.dtype == bool:
-        if idx.shape != (size,):
-            raise ValueError(f"a boolean index needs shape ({size},), got {idx.shape}")
-        return np.flatnonzero(idx)
-    return idx.astype(np.int64).reshape(-1)
-
-
-def marginalize(
-    H: jnp.ndarray, b: jnp.ndarray, keep: np.ndarray, drop: np.ndarray, *,
-    rtol: float | None = None,
-) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """Schur complement of the quadratic 0.5 x^T H x + b^T x onto the kept variables:
-
-        H' = H_kk - H_kd H_dd^+ H_dk,   b' = b_k - H_kd H_dd^+ b_d.
-
-    keep, drop: static index arrays (or boolean masks) into H (the result follows keep's
-    order). H_dd^+ is the pseudo-inverse of the Jacobi-scaled block (eigenvalues under rtol
-    times the largest treated as zero; rtol defaults to jnp.linalg.pinv's), so a singular
-    H_dd (padding slots, unobserved depths: zero rows) contributes nothing along its null
-    space. Dense: O(k d + d^3).
-    """
-    size = H.shape[0]
-    keep, drop = _index(keep, size), _index(drop, size)
-    H = 0.5 * (H + H.T)
-    Hkk, Hkd, Hdd = H[np.ix_(keep, keep)], H[np.ix_(keep, drop)], H[np.ix_(drop, drop)]
-    dg = jnp.diag(Hdd)
-    s = jnp.where(dg > 0, 1.0 / jnp.sqrt(jnp.where(dg > 0, dg, 1.0)), 0.0)
-    Hdd_inv = s[:, None] * jnp.linalg.pinv(s[:, None] * Hdd * s[None, :], rtol=rtol,
-                                           hermitian=True) * s[None, :]
-    K = Hkd @ Hdd_inv
-    Hm = Hkk - K @ Hkd.T
-    return 0.5 * (Hm + Hm.T), b[keep] - K @ b[drop]
-
-
 def _tangent_offset(poses: jnp.ndarray, intrinsics: jnp.ndarray, prior: Prior) -> jnp.ndarray:
     """dx (m,) of the estimate from the prior's linearisation point, zero off its mask."""
     T = jaxlie.SE3.from_matrix(poses)
@@ -663,13 +603,10 @@ def marginalize_keyframe(
     # the depths first (diagonal block: 1 / h, zero for unobserved slots), then the pose's
     # 6 x 6 block: the same Schur complement as eliminating both at once, without the
     # (6 + A)^2 pseudo-inverse (whose eigh took up to a second on some windows)
-    seen = h_pp > 1e-12
-    inv = jnp.where(seen, 1.0 / jnp.where(seen, h_pp, 1.0), 0.0)
-    H = ne.H_cc - (Hcp * inv) @ Hcp.T
-    b = ne.b_c - (Hcp * inv) @ ne.b_p[cols]
+    e = eliminate_diagonal(ne.H_cc, Hcp, h_pp, ne.b_c, ne.b_p[cols])
     pose = np.arange(6 * drop_index, 6 * drop_index + 6)
     keep = np.setdiff1d(np.arange(m), pose)
-    Hm, bm = marginalize(0.5 * (H + H.T), b, keep, pose)
+    Hm, bm = marginalize(e.S, e.r, keep, pose)
     rest = remove_keyframe(problem, drop_index)
     return Prior(H=Hm, b=bm, poses=rest.poses, intrinsics=rest.intrinsics,
                  mask=jnp.ones(m - 6, bool))
@@ -681,16 +618,13 @@ def marginalize_edges(
     """Prior left by marginalising the inverse depths of ``edges`` (n, A) bool (their
     residuals in every keyframe of the window), added to ``prior`` (whose H is kept, its
     gradient taken at the current estimate: first-estimate Jacobians). The depth block is
-    diagonal, so the Schur complement needs no inverse but 1 / h_pp. Linearisation point: the
+    diagonal, so the Schur complement (``schur.eliminate_diagonal``) needs no inverse but
+    1 / h_pp. Linearisation point: the
     current poses and intrinsics."""
     n = problem.poses.shape[0]
     inl = normal_equations(problem, config).mask
     ne = normal_equations(problem, config, mask=inl & edges[pair_hosts(n)])
-    seen = ne.h_pp > 1e-12
-    inv = jnp.where(seen, 1.0 / jnp.where(seen, ne.h_pp, 1.0), 0.0)
-    W = ne.H_cp * inv
     H_p, g_p, _ = prior_terms(problem.poses, problem.intrinsics, prior)
-    H = H_p + ne.H_cc - W @ ne.H_cp.T
-    b = g_p + ne.b_c - W @ ne.b_p
-    return Prior(H=0.5 * (H + H.T), b=b, poses=problem.poses, intrinsics=problem.intrinsics,
+    e = eliminate_diagonal(H_p + ne.H_cc, ne.H_cp, ne.h_pp, g_p + ne.b_c, ne.b_p)
+    return Prior(H=e.S, b=e.r, poses=problem.poses, intrinsics=problem.intrinsics,
                  mask=jnp.ones_like(prior.mask))

@@ -23,7 +23,6 @@ from edgevo_jax.mapping import (
     append_keyframe_to_prior,
     edge_residual,
     edge_residuals,
-    marginalize,
     marginalize_edges,
     marginalize_keyframe,
     no_prior,
@@ -31,9 +30,9 @@ from edgevo_jax.mapping import (
     pair_hosts,
     refine,
     remove_keyframe,
-    schur_solve,
 )
 from edgevo_jax.preprocess import frame_from_edges, preprocess
+from edgevo_jax.schur import eliminate_diagonal, marginalize, schur_solve
 
 refine_jit = jax.jit(refine, static_argnames=("config", "iterations"))
 residuals_jit = jax.jit(edge_residuals, static_argnames="eta")
@@ -277,6 +276,30 @@ def test_mapping_config_from_config_reads_level_0():
     cfg = MappingConfig.from_config(Config(huber_delta=(1.5, 2.0, 2.0),
                                            max_residual=(4.0, 5.0, 5.0)), iterations=3)
     assert (cfg.huber_delta, cfg.max_residual, cfg.eta, cfg.iterations) == (1.5, 4.0, 0.6, 3)
+
+
+def test_eliminate_diagonal_equals_dense_marginalize():
+    """The diagonal-block elimination (one implementation for the damped solve and both
+    marginalisations) equals the dense Schur complement, and drops unobserved entries."""
+    rng = np.random.default_rng(3)
+    m, n = 7, 9
+    J = rng.normal(size=(40, m + n))
+    J[:, m + 2] = 0.0  # an unobserved depth: zero row and column
+    H = J.T @ J
+    H[m:, m:] = np.diag(np.diag(H[m:, m:]))  # the depth block is diagonal
+    b = rng.normal(size=m + n)
+    b[m + 2] = 0.0
+    with jax.enable_x64(True):
+        e = eliminate_diagonal(jnp.asarray(H[:m, :m]), jnp.asarray(H[:m, m:]),
+                               jnp.asarray(np.diag(H[m:, m:])), jnp.asarray(b[:m]),
+                               jnp.asarray(b[m:]))
+        H_ref, b_ref = marginalize(jnp.asarray(H), jnp.asarray(b), np.arange(m),
+                                   np.arange(m, m + n))
+        S, r, inv, H_ref, b_ref = (np.asarray(x) for x in (*e, H_ref, b_ref))
+    np.testing.assert_allclose(S, H_ref, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(r, b_ref, rtol=1e-9, atol=1e-9)
+    np.testing.assert_array_equal(S, S.T)
+    assert inv[2] == 0.0 and np.all(inv[np.arange(n) != 2] > 0)
 
 
 # --- 4. a window rendered from a real depth frame -------------------------------------------
