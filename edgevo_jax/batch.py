@@ -48,11 +48,12 @@ from .camera import Intrinsics
 from .chunk import track_chunk
 from .config import Config
 from .datasets.tum import TumSequence
+from .derive import SolveStructure, solve_structure
 from .hostmem import aligned_stack, to_host
 from .interp import stack_edge_maps
 from .preprocess import Frame, preprocess
 from .runner import initial_pose
-from .solve import KeyframeEdges, solve_structure
+from .solve import KeyframeEdges
 from .tracker import LOST, FrameResult, FrameResults, Odometry
 
 #: Config fields that change the pre-processed frames (runs differing in them do not share).
@@ -162,9 +163,9 @@ def _step(kf, window_dist, window_ng, source, offset, A, B, intr, knobs, *, conf
 
 
 @cache
-def _batched(config: Config, chunk: int, sharding: NamedSharding | None):
-    """The compiled batch step: vmap over runs; the frame windows are shared (not mapped).
-    ``config`` only gives the number of levels."""
+def _batched(config: SolveStructure, chunk: int, sharding: NamedSharding | None):
+    """The compiled batch step: vmap over runs; the frame windows are shared (not mapped);
+    ``config``: the solve's static part."""
     fn = jax.vmap(partial(_step, config=config, chunk=chunk),
                   in_axes=(0, None, None, 0, 0, 0, 0, 0, 0))
     if sharding is None:
@@ -172,8 +173,8 @@ def _batched(config: Config, chunk: int, sharding: NamedSharding | None):
     return jax.jit(fn, out_shardings=sharding)
 
 
-def _structure(configs: Sequence[Config]) -> Config:
-    """The static part every run shares (number of levels), as a Config."""
+def _structure(configs: Sequence[Config]) -> SolveStructure:
+    """The static part of the solve that every run shares (``derive.solve_structure``)."""
     levels = {c.num_levels for c in configs}
     if len(levels) != 1:
         raise ValueError(f"all configurations of a batch need the same number of pyramid "

@@ -1,4 +1,6 @@
-"""The frozen configuration of a run: every static choice of the method in one place.
+"""The frozen configuration of a run: every static choice of the method in one place. The
+numbers the solvers run on, and which of them are static or traced, are derived from it in
+one place only: ``derive.py`` (tracker, window, learnt Params).
 
 Defaults and where they come from (EdgeVO: Zhao, Shang, Liu, Chen, Gu; DSO for the keyframe
 weights the paper adopts):

@@ -74,6 +74,7 @@ import numpy as np
 from .camera import Intrinsics, unproject
 from .chunk import predict
 from .config import Config
+from .derive import SolveKnobs, solve_knobs
 from .geometry import Rigid
 from .interp import bicubic_with_grad
 from .params import Params, weighting_of
@@ -85,13 +86,11 @@ from .solve import (
     KeyframeEdges,
     LevelSystem,
     LMTry,
-    SolveKnobs,
     TrackResult,
     lm_continues,
     lm_iteration,
     lm_start,
     robust_system,
-    solve_knobs,
     track_result,
 )
 

@@ -45,6 +45,7 @@ import numpy as np
 
 from .camera import Intrinsics, project, unproject
 from .config import Config
+from .derive import MappingConfig, window_config
 from .interp import EdgeMap, bilinear, bilinear_with_grad
 from .residuals import consistency_dots_known
 from .robust import huber_cost, huber_weights
@@ -102,45 +103,6 @@ class Prior(NamedTuple):
     mask: jnp.ndarray
 
 
-class MappingConfig(NamedTuple):
-    """The numbers of the window refinement (hashable: a jit static argument).
-
-    iterations: Levenberg-Marquardt tries; huber_delta, max_residual: Huber radius and gate
-    (level-0 pixels); lambda_init: initial lam of (H + lam diag H); gauge_index: the keyframe
-    whose pose is held fixed; fix_scale: keep the geometric mean of the inverse depths;
-    step_tol: stop once a step's norm is below it; min_rho: floor of updated inverse depths;
-    refine_depths, refine_intrinsics: which variables move (poses always do);
-    warmup_iterations: pose-only tries before the joint ones (see ``refine``); eta: the
-    gradient-consistency threshold (used when the problem carries gradients);
-    depth_prior_sigma: standard deviation (1/m, against residuals in pixels) of a measured
-    inverse depth, used when the problem carries ``rho_prior`` (0: none). An edge's
-    distance residual constrains its depth only across the edge: where the epipolar line
-    runs along the edge nothing else holds the depth.
-    """
-
-    iterations: int = 10
-    huber_delta: float = 1.0
-    max_residual: float = 5.0
-    lambda_init: float = 1e-4
-    gauge_index: int = 0
-    fix_scale: bool = True
-    step_tol: float = 1e-8
-    min_rho: float = 1e-3
-    refine_depths: bool = True
-    refine_intrinsics: bool = True
-    warmup_iterations: int = 0
-    eta: float = 0.6
-    depth_prior_sigma: float = 0.0
-
-    @classmethod
-    def from_config(cls, config: Config, **changes: object) -> MappingConfig:
-        """Huber radius and gate from Config's level 0 (huber_delta[0], max_residual[0]) and
-        its eta; other fields from ``changes`` or the defaults."""
-        base = cls(huber_delta=float(config.huber_delta[0]),
-                   max_residual=float(config.max_residual[0]), eta=float(config.eta))
-        return base._replace(**changes)
-
-
 class NormalEquations(NamedTuple):
     """Blocks of the Gauss-Newton system of the window (see the module doc for the layouts).
 
@@ -184,7 +146,9 @@ def pair_hosts(n: int) -> np.ndarray:
 
 
 def _as_mapping_config(config: MappingConfig | Config) -> MappingConfig:
-    return config if isinstance(config, MappingConfig) else MappingConfig.from_config(config)
+    """A MappingConfig as it is; a run's Config through ``derive.window_config`` (the numbers
+    the tracker's local map refines with)."""
+    return config if isinstance(config, MappingConfig) else window_config(config)
 
 
 def _rot(R: jnp.ndarray, P: jnp.ndarray) -> jnp.ndarray:

@@ -18,10 +18,11 @@ import numpy as np
 
 from .camera import Intrinsics, unproject
 from .config import Config
+from .derive import SolveKnobs, SolveStructure, solve_knobs
 from .geometry import Rigid, rotation_translation
 from .interp import EdgeMap
 from .residuals import consistency_dots_at_level, residual_jacobian_grad, warp
-from .robust import EdgeWeighting, edge_weights, huber_cost, huber_weights
+from .robust import edge_weights, huber_cost, huber_weights
 
 
 class KeyframeEdges(NamedTuple):
@@ -35,43 +36,6 @@ class KeyframeEdges(NamedTuple):
     grad: jnp.ndarray
     valid: jnp.ndarray
     mag: jnp.ndarray | None = None
-
-
-class SolveKnobs(NamedTuple):
-    """The numeric settings of the solve as arrays (a pytree), so that one compiled program
-    serves many configurations (``batch.py`` vmaps over them): per level huber_delta (L,) and
-    max_residual (L,) in that level's pixels, iterations (L,) int32; eta (), step_tol () and
-    max_rejects () int32. ``weighting``: the learnable per-edge weighting model
-    (``robust.EdgeWeighting``, from ``params.solve_knobs_of``), or None (the plain tracker;
-    a None compiles without it)."""
-
-    huber_delta: jnp.ndarray
-    max_residual: jnp.ndarray
-    eta: jnp.ndarray
-    iterations: jnp.ndarray
-    step_tol: jnp.ndarray
-    max_rejects: jnp.ndarray
-    weighting: EdgeWeighting | None = None
-
-
-def solve_knobs(config: Config) -> SolveKnobs:
-    """The ``SolveKnobs`` of a Config (numpy arrays, float32 and int32)."""
-    return SolveKnobs(
-        huber_delta=np.asarray(config.huber_delta, np.float32),
-        max_residual=np.asarray(config.max_residual, np.float32),
-        eta=np.asarray(config.eta, np.float32),
-        iterations=np.asarray(config.iterations, np.int32),
-        step_tol=np.asarray(config.step_tol, np.float32),
-        max_rejects=np.asarray(config.max_rejects, np.int32),
-    )
-
-
-def solve_structure(config: Config) -> Config:
-    """The static part of the solve once ``SolveKnobs`` carry its numbers: the number of
-    pyramid levels, as a default Config with that many levels, so that configurations that
-    differ in numbers only share one compiled program."""
-    n = config.num_levels
-    return Config(iterations=(10,) * n, huber_delta=(1.0,) * n, max_residual=(5.0,) * n)
 
 
 #: Layout of ``LevelSystem.sums``: the upper triangle of H row by row (21), g (6), the robust
@@ -355,14 +319,15 @@ def track(
     edge_map: EdgeMap,
     T_init: jnp.ndarray,
     intr: Intrinsics,
-    config: Config,
+    config: Config | SolveStructure,
     knobs: SolveKnobs | None = None,
 ) -> TrackResult:
     """Align keyframe edges to the frame's distance-field pyramid, coarsest level first.
 
     dist: one field per level (H / 2**l, W / 2**l); edge_map: the frame's ``interp.EdgeMap``;
-    T_init: (4, 4) initial T_cur_kf. Jit with ``config`` static; its numbers are read from
-    ``knobs`` (default: ``solve_knobs(config)``), which may be traced.
+    T_init: (4, 4) initial T_cur_kf. ``config`` (static) gives the number of levels: a
+    ``derive.SolveStructure`` (``derive.solve_structure``) or a Config; the numbers are read
+    from ``knobs`` (traced; default ``derive.solve_knobs(config)``, which needs a Config).
     """
     knobs = solve_knobs(config) if knobs is None else knobs
     pts_k = unproject(intr, kf.uv, kf.rho)
