@@ -36,6 +36,7 @@ it: 6.66 / 6.74 mm ATE over selection seeds 0-8).
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import jax
@@ -50,6 +51,7 @@ from .interp import EdgeMap, bilinear, bilinear_with_grad
 from .residuals import consistency_dots_known
 from .robust import huber_cost, huber_weights
 from .schur import eliminate_diagonal, marginalize, schur_solve
+from .solvers import WINDOW_DAMPING
 
 
 class WindowProblem(NamedTuple):
@@ -410,6 +412,15 @@ def _apply(problem: WindowProblem, delta_c: jnp.ndarray, delta_p: jnp.ndarray,
                             intrinsics=problem.intrinsics + delta_c[6 * n:])
 
 
+class _Judged(NamedTuple):
+    """The window's LM system: the normal equations at a point (with its own inlier set) and
+    the energy of that point judged with the inlier set of the point the try started from
+    (what ``refine`` compares against the start's own energy)."""
+
+    ne: NormalEquations
+    fixed_set_cost: jnp.ndarray
+
+
 def refine(
     problem: WindowProblem, config: MappingConfig | Config, prior: Prior | None = None,
     iterations: int | None = None,
@@ -423,11 +434,13 @@ def refine(
     with lam diag(H) damping, the scale restored (``fix_scale``, module doc), and the step
     kept only if it lowers the energy judged with the inlier set of the point it starts from
     (gating and the gradient test are steps in the cost: with the set re-decided inside the
-    comparison, LM stalls against them), then lam / 10 and a new inlier set, else lam x 10.
+    comparison, LM stalls against them), then lam x 0.1 and a new inlier set, else lam x 10
+    (``solvers.WINDOW_DAMPING``: lam from ``lambda_init``, within [1e-7, 1e4]).
     The first ``warmup_iterations`` tries move the poses alone (depths and intrinsics
     frozen: the poses, fitted by all edges at once, converge from further away than one
     edge's depth can, and the weakly observable intrinsics would absorb the depths' errors),
-    then ``iterations`` (argument, else the config's) joint ones. One lax.while_loop that
+    then ``iterations`` (argument, else the config's) joint ones, lam reset to
+    ``lambda_init`` for the first of them. One lax.while_loop that
     evaluates the residuals once per try; jit with ``config`` and ``iterations`` static
     (None stands for ``no_prior(problem)``; pass that explicitly to share one compiled
     program between calls with and without a prior).
@@ -470,28 +483,38 @@ def refine(
         ok = jnp.all(jnp.isfinite(dc)) & jnp.all(jnp.isfinite(dp))
         return jnp.where(ok, dc, 0.0), jnp.where(ok, dp, 0.0)
 
-    def cond(state):
-        i, _, _, _, size, _ = state
-        return (i <= warm + iters) & ((size >= cfg.step_tol) | (i <= warm))
+    def at(x) -> WindowProblem:
+        return problem._replace(poses=x[0], rho=x[1], intrinsics=x[2])
 
-    def body(state):
+    lm = dataclasses.replace(WINDOW_DAMPING, lam_init=cfg.lambda_init)
+
+    def cond(carry):
+        i, state, _ = carry
+        return (i <= warm + iters) & (lm.continues(state, cfg.step_tol) | (i <= warm))
+
+    def body(carry):
         # try i = 0 evaluates the start; tries 1..warm move the poses alone
-        i, x, ne, lam, _, cost0 = state
-        p = problem._replace(poses=x[0], rho=x[1], intrinsics=x[2])
-        lam = jnp.where(i == warm + 1, cfg.lambda_init, lam)
-        dc, dp = step(p, ne, lam, i > warm)
-        dc, dp = jnp.where(i == 0, 0.0, dc), jnp.where(i == 0, 0.0, dp)
-        p_new = _apply(p, dc, dp, cfg.min_rho)
-        if cfg.fix_scale:
-            p_new = _restore_scale(p_new, log_rho_sum, cfg.gauge_index)
-        ne_new, cost_same_set = system(p_new, ne.mask)
-        better = cost_same_set < ne.cost
-        x_new = (p_new.poses, p_new.rho, p_new.intrinsics)
-        x, ne = jax.tree.map(lambda a, b: jnp.where(better, a, b), (x_new, ne_new), (x, ne))
-        lam = jnp.clip(jnp.where(better, lam * 0.1, lam * 10.0), 1e-7, 1e4)
+        i, state, cost0 = carry
+        state = state._replace(lam=jnp.where(i == warm + 1, cfg.lambda_init, state.lam))
+
+        def solve(x, judged: _Judged, lam):
+            dc, dp = step(at(x), judged.ne, lam, i > warm)
+            return jnp.where(i == 0, 0.0, dc), jnp.where(i == 0, 0.0, dp)
+
+        def apply(x, delta):
+            p_new = _apply(at(x), delta[0], delta[1], cfg.min_rho)
+            if cfg.fix_scale:
+                p_new = _restore_scale(p_new, log_rho_sum, cfg.gauge_index)
+            return (p_new.poses, p_new.rho, p_new.intrinsics)
+
+        state, new = lm.step(
+            state, solve=solve, apply=apply,
+            evaluate=lambda x, judged: _Judged(*system(at(x), judged.ne.mask)),
+            accept=lambda old, new: new.fixed_set_cost < old.ne.cost,
+            norm=lambda d: jnp.sqrt(d[0] @ d[0] + d[1] @ d[1]))
         # a converged warm-up must not end the loop before the joint tries
-        size = jnp.where((i == 0) | (i == warm), jnp.inf, jnp.sqrt(dc @ dc + dp @ dp))
-        return i + 1, x, ne, lam, size, jnp.where(i == 0, ne_new.cost, cost0)
+        state = state._replace(step=jnp.where((i == 0) | (i == warm), jnp.inf, state.step))
+        return i + 1, state, jnp.where(i == 0, new.ne.cost, cost0)
 
     dtype = problem.rho.dtype
     log_rho_sum = jnp.sum(jnp.where(problem.valid,
@@ -501,9 +524,9 @@ def refine(
     ne0 = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
     ne0 = ne0._replace(cost=jnp.asarray(jnp.inf, shapes.cost.dtype))
     x0 = (problem.poses, problem.rho, problem.intrinsics)
-    lam0 = jnp.asarray(cfg.lambda_init, dtype)
-    init = (jnp.asarray(0), x0, ne0, lam0, jnp.asarray(jnp.inf, dtype), ne0.cost)
-    i, x, ne, _, _, cost0 = jax.lax.while_loop(cond, body, init)
+    init = (jnp.asarray(0), lm.init(x0, _Judged(ne0, ne0.cost), dtype), ne0.cost)
+    i, state, cost0 = jax.lax.while_loop(cond, body, init)
+    x, ne = state.x, state.system.ne
     out = problem._replace(poses=x[0], rho=x[1], intrinsics=x[2])
     stats = {"cost_before": cost0, "cost_after": ne.cost, "inliers": ne.count,
              "iterations": i - 1}

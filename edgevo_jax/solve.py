@@ -23,6 +23,7 @@ from .geometry import Rigid, rotation_translation
 from .interp import EdgeMap
 from .residuals import consistency_dots_at_level, residual_jacobian_grad, warp
 from .robust import edge_weights, huber_cost, huber_weights
+from .solvers import DAMPING, LMState, lower_cost
 
 
 class KeyframeEdges(NamedTuple):
@@ -222,54 +223,34 @@ def damped_step(system: LevelSystem, lam: jnp.ndarray) -> jnp.ndarray:
     return jnp.where(ok, xi, jnp.zeros_like(xi))
 
 
-class LMTry(NamedTuple):
-    """What one Levenberg-Marquardt try leaves: the pose, its system, the damping lam, the
-    norm of the step tried and how many tries in a row were rejected."""
-
-    T: Rigid
-    system: LevelSystem
-    lam: jnp.ndarray
-    step: jnp.ndarray
-    rejects: jnp.ndarray
-
-
-def lm_start(T: Rigid, system: LevelSystem) -> LMTry:
-    """The state before the first try from pose T with its system."""
-    dtype = system.sums.dtype
-    return LMTry(T, system, jnp.asarray(1e-4, dtype), jnp.asarray(jnp.inf, dtype),
-                 jnp.asarray(0, jnp.int32))
-
-
-def lower_cost(old: LevelSystem, new: LevelSystem) -> jnp.ndarray:
-    """Levenberg-Marquardt's acceptance test: the step lowered the robust cost."""
-    return new.cost < old.cost
-
-
-def lm_iteration(
+def pose_try(
     system_at: Callable[[Rigid], LevelSystem],
-    state: LMTry,
+    state: LMState,
     accept: Callable[[LevelSystem, LevelSystem], jnp.ndarray] = lower_cost,
-) -> LMTry:
-    """One Levenberg-Marquardt try: the damped step is kept when ``accept`` (old system, new
-    system) holds, by default when ``system_at`` says it lowers the robust cost; lam shrinks
-    10x after a kept step and grows 10x after a rejected one."""
-    xi = damped_step(state.system, state.lam)
-    T_new = state.T.retract(xi)
-    sys_new = system_at(T_new)
-    better = accept(state.system, sys_new)
-    T, system = jax.tree.map(
-        lambda a, b: jnp.where(better, a, b), (T_new, sys_new), (state.T, state.system)
+) -> LMState:
+    """One Levenberg-Marquardt try of the pose (``solvers.DAMPING``): the damped step
+    ``damped_step``, applied as T <- exp(xi) T, kept when ``accept`` (old system, new system)
+    holds, by default when ``system_at`` says it lowers the robust cost."""
+    state, _ = DAMPING.step(
+        state,
+        solve=lambda T, system, lam: damped_step(system, lam),
+        apply=lambda T, xi: T.retract(xi),
+        evaluate=lambda T, system: system_at(T),
+        accept=accept,
     )
-    lam = jnp.clip(jnp.where(better, state.lam * 0.1, state.lam * 10.0), 1e-6, 1e4)
-    rejects = jnp.where(better, 0, state.rejects + 1)
-    return LMTry(T, system, lam, jnp.sqrt(sum(xi[i] * xi[i] for i in range(6))), rejects)
+    return state
 
 
-def lm_continues(state: LMTry, knobs: SolveKnobs) -> jnp.ndarray:
+def pose_start(T: Rigid, system: LevelSystem) -> LMState:
+    """The pose solve's state before the first try from pose T with its system."""
+    return DAMPING.init(T, system, system.sums.dtype)
+
+
+def pose_continues(state: LMState, knobs: SolveKnobs) -> jnp.ndarray:
     """Whether a level tries again after ``state``: its step was at least ``step_tol`` and
     fewer than ``max_rejects`` tries in a row were rejected (each rejection only grows lam
     tenfold, the pose stays). The iteration budget is the caller's."""
-    return (state.step >= knobs.step_tol) & (state.rejects < knobs.max_rejects)
+    return DAMPING.continues(state, knobs.step_tol, knobs.max_rejects)
 
 
 def align_level(
@@ -287,8 +268,8 @@ def align_level(
 
     A step is kept only when it lowers the robust cost (the coarse, non-smooth distance fields
     make plain Gauss-Newton oscillate); lam shrinks 10x after a kept step and grows 10x after
-    a rejected one. lax.while_loop: fixed shapes, at most ``knobs.iterations[level]`` tries,
-    stopped earlier by ``lm_continues``.
+    a rejected one (``solvers.DAMPING``). lax.while_loop: fixed shapes, at most
+    ``knobs.iterations[level]`` tries, stopped earlier by ``pose_continues``.
     """
 
     def system_at(T):
@@ -296,14 +277,14 @@ def align_level(
 
     def cond(carry):
         i, state = carry
-        return (i < knobs.iterations[level]) & lm_continues(state, knobs)
+        return (i < knobs.iterations[level]) & pose_continues(state, knobs)
 
     def body(carry):
         i, state = carry
-        return i + 1, lm_iteration(system_at, state)
+        return i + 1, pose_try(system_at, state)
 
-    _, state = jax.lax.while_loop(cond, body, (jnp.asarray(0), lm_start(T, system_at(T))))
-    return state.T, state.system
+    _, state = jax.lax.while_loop(cond, body, (jnp.asarray(0), pose_start(T, system_at(T))))
+    return state.x, state.system
 
 
 def rms_flow(uv_from: jnp.ndarray, uv_to: jnp.ndarray, mask: jnp.ndarray) -> jnp.ndarray:
