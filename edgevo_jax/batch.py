@@ -2,7 +2,7 @@
 
 Every (sequence, configuration) pair is a *run*. All runs step together: one call of
 ``vmap(chunk.track_chunk)`` tracks the next ``chunk`` frames of every run against that run's
-keyframe, with the numeric settings of the solve (``solve.SolveKnobs``: Huber radii, gates,
+keyframe, with the numeric settings of the solve (``derive.SolveKnobs``: Huber radii, gates,
 eta, iterations, step tolerance) as vmapped arrays, so a grid of them costs one compilation.
 The host then concludes each run's frames in order with that run's own ``Odometry`` (state,
 recovery, keyframe decision and edge selection, local mapping), exactly as the
