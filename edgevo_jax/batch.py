@@ -2,7 +2,7 @@
 
 Every (sequence, configuration) pair is a *run*. All runs step together: one call of
 ``vmap(chunk.track_chunk)`` tracks the next ``chunk`` frames of every run against that run's
-keyframe, with the numeric settings of the solve (``solve.SolveKnobs``: Huber radii, gates,
+keyframe, with the numeric settings of the solve (``derive.SolveKnobs``: Huber radii, gates,
 eta, iterations, step tolerance) as vmapped arrays, so a grid of them costs one compilation.
 The host then concludes each run's frames in order with that run's own ``Odometry`` (state,
 recovery, keyframe decision and edge selection, local mapping), exactly as the
@@ -48,12 +48,13 @@ from .camera import Intrinsics
 from .chunk import track_chunk
 from .config import Config
 from .datasets.tum import TumSequence
+from .derive import SolveStructure, solve_structure
 from .determinism import full_precision
 from .hostmem import aligned_stack, to_host
 from .interp import stack_edge_maps
 from .preprocess import Frame, preprocess
 from .runner import initial_pose
-from .solve import KeyframeEdges, solve_structure
+from .solve import KeyframeEdges
 from .tracker import FrameResult, FrameResults, Odometry
 
 #: Config fields that change the pre-processed frames (runs differing in them do not share).
@@ -167,9 +168,9 @@ def _step(kf, window_dist, window_ng, source, offset, A, B, intr, knobs, *, conf
 
 
 @cache
-def _batched(config: Config, chunk: int, sharding: NamedSharding | None):
-    """The compiled batch step: vmap over runs; the frame windows are shared (not mapped).
-    ``config`` only gives the number of levels."""
+def _batched(config: SolveStructure, chunk: int, sharding: NamedSharding | None):
+    """The compiled batch step: vmap over runs; the frame windows are shared (not mapped);
+    ``config``: the solve's static part."""
     fn = jax.vmap(partial(_step, config=config, chunk=chunk),
                   in_axes=(0, None, None, 0, 0, 0, 0, 0, 0))
     if sharding is None:
@@ -177,8 +178,8 @@ def _batched(config: Config, chunk: int, sharding: NamedSharding | None):
     return full_precision(jax.jit(fn, out_shardings=sharding))
 
 
-def _structure(configs: Sequence[Config]) -> Config:
-    """The static part every run shares (number of levels), as a Config."""
+def _structure(configs: Sequence[Config]) -> SolveStructure:
+    """The static part of the solve that every run shares (``derive.solve_structure``)."""
     levels = {c.num_levels for c in configs}
     if len(levels) != 1:
         raise ValueError(f"all configurations of a batch need the same number of pyramid "

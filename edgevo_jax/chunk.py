@@ -19,9 +19,10 @@ import jax.numpy as jnp
 
 from .camera import Intrinsics
 from .config import Config
+from .derive import SolveKnobs, SolveStructure
 from .determinism import full_precision
 from .interp import EdgeMap
-from .solve import KeyframeEdges, SolveKnobs, TrackResult, track
+from .solve import KeyframeEdges, TrackResult, track
 
 
 def rigid_inverse(T: jnp.ndarray) -> jnp.ndarray:
@@ -45,7 +46,7 @@ def track_next(
     B: jnp.ndarray,
     intr: Intrinsics,
     knobs: SolveKnobs,
-    config: Config,
+    config: Config | SolveStructure,
 ) -> TrackResult:
     """Track one frame (dist pyramid, ``interp.EdgeMap``) from the constant-velocity
     prediction of its last two keyframe-relative poses A, B (see ``predict``)."""
@@ -60,7 +61,7 @@ def track_chunk(
     B: jnp.ndarray,
     intr: Intrinsics,
     knobs: SolveKnobs,
-    config: Config,
+    config: Config | SolveStructure,
 ) -> TrackResult:
     """Track C frames in order against one keyframe: dist holds one (C, H / 2**l, W / 2**l)
     array per level, edge_map holds (C, H, W) arrays. Each frame starts from the prediction of
@@ -85,7 +86,7 @@ def batch_of_one(fn):
     chunks this way makes one run's trajectory the same alone and in a batch (``batch.py``).
     """
 
-    def one(*args, config: Config):
+    def one(*args, config: Config | SolveStructure):
         out = jax.vmap(partial(fn, config=config))(*jax.tree.map(lambda a: a[None], args))
         return jax.tree.map(lambda a: a[0], out)
 

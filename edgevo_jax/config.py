@@ -1,4 +1,6 @@
-"""The frozen configuration of a run: every static choice of the method in one place.
+"""The frozen configuration of a run: every static choice of the method in one place. The
+numbers the solvers run on, and which of them are static or traced, are derived from it in
+one place only: ``derive.py`` (tracker, window, learnt Params).
 
 ``Config`` is hashable (a jit static argument where it is one). Units: pixels of each
 pyramid level for the per-level tuples (``huber_delta``, ``max_residual``), metres for

@@ -2,11 +2,12 @@
 pose losses against ground truth (frame pairs, windows, chunks).
 
 ``track_differentiable`` runs the tracker's coarse-to-fine Levenberg-Marquardt
-(``solve.lm_iteration`` on ``solve.robust_system``) with the learnable parameters in place
-of the config's: Huber radius per level ``exp(log_huber[l])``, the gradient-consistency test
-made soft, sigmoid((g(p) . g(p') - eta) / tau) (``consistency="hard"`` keeps the plain
-tracker's g(p) . g(p') >= eta), and each inlier's Huber weight scaled by the per-edge
-weighting model (``robust.edge_weights``). A soft-rejected fraction 1 - s of an edge adds that
+(``solve.pose_try``: a ``solvers.LevenbergMarquardt`` try on ``solve.robust_system``) with
+the learnable parameters in place of the config's: Huber radius per level
+``exp(log_huber[l])``, the gradient-consistency test made soft,
+sigmoid((g(p) . g(p') - eta) / tau) (``consistency="hard"`` keeps the plain tracker's
+g(p) . g(p') >= eta), and each inlier's Huber weight scaled by the per-edge weighting model
+(``robust.edge_weights``). A soft-rejected fraction 1 - s of an edge adds that
 fraction of the gate's cost, as the plain tracker's cost does for a rejected edge.
 
 Two options make the cost smooth enough for exact implicit gradients (both off by default,
@@ -65,6 +66,7 @@ import numpy as np
 from .camera import Intrinsics, unproject
 from .chunk import predict
 from .config import Config
+from .derive import SolveKnobs, solve_knobs
 from .geometry import Rigid
 from .interp import bicubic_with_grad
 from .params import Params, weighting_of
@@ -75,16 +77,14 @@ from .selection import reobservation_probability
 from .solve import (
     KeyframeEdges,
     LevelSystem,
-    LMTry,
-    SolveKnobs,
     TrackResult,
-    lm_continues,
-    lm_iteration,
-    lm_start,
+    pose_continues,
+    pose_start,
+    pose_try,
     robust_system,
-    solve_knobs,
     track_result,
 )
+from .solvers import LMState
 
 ADJOINTS = ("unrolled", "implicit")
 CONSISTENCY = ("soft", "hard")
@@ -178,9 +178,9 @@ def _settles(old: LevelSystem, new: LevelSystem) -> jnp.ndarray:
     return (new.cost < old.cost) | shrinks
 
 
-def _lm_try(system_at, state: LMTry, settle: bool) -> LMTry:
-    """``solve.lm_iteration``, with ``_settles`` as the acceptance test when ``settle``."""
-    return lm_iteration(system_at, state, _settles) if settle else lm_iteration(system_at, state)
+def _lm_try(system_at, state: LMState, settle: bool) -> LMState:
+    """``solve.pose_try``, with ``_settles`` as the acceptance test when ``settle``."""
+    return pose_try(system_at, state, _settles) if settle else pose_try(system_at, state)
 
 
 def _align(
@@ -188,19 +188,19 @@ def _align(
     settle: bool = False,
 ) -> tuple[Rigid, LevelSystem]:
     """``iterations`` LM tries (a scan: reverse-differentiable), frozen once
-    ``solve.lm_continues`` says stop (what ``solve.align_level``'s while loop does)."""
+    ``solve.pose_continues`` says stop (what ``solve.align_level``'s while loop does)."""
 
     def body(carry, _):
         state, active = carry
         new = _lm_try(system_at, state, settle)
         state = jax.tree.map(lambda a, b: jnp.where(active, a, b), new, state)
-        return (state, active & jax.lax.stop_gradient(lm_continues(new, knobs))), None
+        return (state, active & jax.lax.stop_gradient(pose_continues(new, knobs))), None
 
     if checkpoint:
         body = jax.checkpoint(body)
-    init = (lm_start(T, system_at(T)), jnp.asarray(True))
+    init = (pose_start(T, system_at(T)), jnp.asarray(True))
     (state, _), _ = jax.lax.scan(body, init, None, length=iterations)
-    return state.T, state.system
+    return state.x, state.system
 
 
 def _flat(T: Rigid) -> jnp.ndarray:

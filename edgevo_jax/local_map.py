@@ -40,12 +40,12 @@ import numpy as np
 from .activation import activate, reproject
 from .camera import Intrinsics, unproject
 from .config import Config
+from .derive import MappingConfig, join_window, split_window, window_config
 from .determinism import full_precision
 from .geometry import inverse_np, orthonormalise_np
 from .hostmem import to_host
 from .interp import EdgeMap
 from .mapping import (
-    MappingConfig,
     Prior,
     WindowProblem,
     append_keyframe_to_prior,
@@ -110,16 +110,6 @@ def depth_continuous(depth: np.ndarray, uv: np.ndarray, grad: np.ndarray, *,
     return planar
 
 
-def mapping_config(config: Config) -> MappingConfig:
-    """The window refinement's numbers from the run's Config (level-0 Huber radius, gate and
-    eta; ``mapping_iterations`` LM tries after as many pose-only ones)."""
-    return MappingConfig.from_config(
-        config, iterations=config.mapping_iterations,
-        warmup_iterations=config.mapping_iterations, refine_intrinsics=config.mapping_intrinsics,
-        depth_prior_sigma=config.mapping_depth_sigma,
-    )
-
-
 def _candidate_slots(edges: KeyframeEdges, k: int):
     """A keyframe's tracked edges as K = ``k`` activation candidates (every keyframe the same
     K: fixed shapes): all of them with the selecting modes; with ``selection=all``, K evenly
@@ -159,25 +149,9 @@ def _activation_step(intr, T_new_host, uv, rho, grad, valid, active, track, fiel
 _activation_jit = full_precision(jax.jit(_activation_step, static_argnames=(
     "width", "height", "cell", "max_angle_deg")))
 
-#: MappingConfig's numbers that reach the window's programs as arrays, not as static
-#: values: configurations that differ in them (a grid of Huber radii) share one compilation.
-TRACED_NUMBERS = ("huber_delta", "max_residual", "eta")
-
-
-def split_numbers(cfg: MappingConfig) -> tuple[MappingConfig, tuple[np.ndarray, ...]]:
-    """The static part of ``cfg`` (its TRACED_NUMBERS set to None) and those numbers as
-    float32 arrays."""
-    return (cfg._replace(**dict.fromkeys(TRACED_NUMBERS)),
-            tuple(np.asarray(getattr(cfg, k), np.float32) for k in TRACED_NUMBERS))
-
-
-def _join(structure: MappingConfig, numbers) -> MappingConfig:
-    return structure._replace(**dict(zip(TRACED_NUMBERS, numbers, strict=True)))
-
-
 def _refine(problem: WindowProblem, numbers, prior: Prior, *, config: MappingConfig):
-    """``mapping.refine`` with the numbers of ``split_numbers`` traced."""
-    return refine(problem, _join(config, numbers), prior)
+    """``mapping.refine`` with the numbers of ``derive.split_window`` traced."""
+    return refine(problem, join_window(config, numbers), prior)
 
 
 _refine_jit = full_precision(jax.jit(_refine, static_argnames="config"))
@@ -195,8 +169,8 @@ def _permute_prior(prior: Prior, order: jnp.ndarray) -> Prior:
 def _marginalize_first(problem: WindowProblem, numbers, prior: Prior, order: jnp.ndarray, *,
                        config: MappingConfig) -> Prior:
     """``marginalize_keyframe`` of keyframe 0 of ``problem`` (the window taken in the new
-    ``order``), with the prior permuted to that order first (numbers: ``split_numbers``)."""
-    return marginalize_keyframe(problem, 0, _join(config, numbers),
+    ``order``), with the prior permuted to that order first (numbers: ``split_window``)."""
+    return marginalize_keyframe(problem, 0, join_window(config, numbers),
                                 _permute_prior(prior, order))
 
 
@@ -204,7 +178,7 @@ def _marginalize_stale(problem: WindowProblem, numbers, stale: jnp.ndarray, prio
                        config: MappingConfig) -> Prior:
     """``marginalize_edges`` of the ``stale`` (n - 1, A) edges of the window without its
     keyframe 0 (which ``_marginalize_first`` took out)."""
-    return marginalize_edges(remove_keyframe(problem, 0), stale, _join(config, numbers),
+    return marginalize_edges(remove_keyframe(problem, 0), stale, join_window(config, numbers),
                              prior)
 
 
@@ -226,8 +200,8 @@ class LocalMap:
 
     def __post_init__(self) -> None:
         self.intrinsics = np.asarray(self.intrinsics, np.float32)
-        self._mcfg = mapping_config(self.config)
-        self._structure, self._numbers = split_numbers(self._mcfg)
+        self._mcfg = window_config(self.config)
+        self._structure, self._numbers = split_window(self._mcfg)
 
     @property
     def camera(self) -> Intrinsics:

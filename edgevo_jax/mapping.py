@@ -35,6 +35,7 @@ restoration then only keeps the window's scale where it was.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import jax
@@ -44,9 +45,12 @@ import numpy as np
 
 from .camera import Intrinsics, project, unproject
 from .config import Config
+from .derive import MappingConfig, window_config
 from .interp import EdgeMap, bilinear, bilinear_with_grad
 from .residuals import consistency_dots_known
 from .robust import huber_cost, huber_weights
+from .schur import eliminate_diagonal, marginalize, schur_solve
+from .solvers import WINDOW_DAMPING
 
 
 class WindowProblem(NamedTuple):
@@ -100,45 +104,6 @@ class Prior(NamedTuple):
     mask: jnp.ndarray
 
 
-class MappingConfig(NamedTuple):
-    """The numbers of the window refinement (hashable: a jit static argument).
-
-    iterations: Levenberg-Marquardt tries; huber_delta, max_residual: Huber radius and gate
-    (level-0 pixels); lambda_init: initial lam of (H + lam diag H); gauge_index: the keyframe
-    whose pose is held fixed; fix_scale: keep the geometric mean of the inverse depths;
-    step_tol: stop once a step's norm is below it; min_rho: floor of updated inverse depths;
-    refine_depths, refine_intrinsics: which variables move (poses always do);
-    warmup_iterations: pose-only tries before the joint ones (see ``refine``); eta: the
-    gradient-consistency threshold (used when the problem carries gradients);
-    depth_prior_sigma: standard deviation (1/m, against residuals in pixels) of a measured
-    inverse depth, used when the problem carries ``rho_prior`` (0: none). An edge's
-    distance residual constrains its depth only across the edge: where the epipolar line
-    runs along the edge nothing else holds the depth.
-    """
-
-    iterations: int = 10
-    huber_delta: float = 1.0
-    max_residual: float = 5.0
-    lambda_init: float = 1e-4
-    gauge_index: int = 0
-    fix_scale: bool = True
-    step_tol: float = 1e-8
-    min_rho: float = 1e-3
-    refine_depths: bool = True
-    refine_intrinsics: bool = True
-    warmup_iterations: int = 0
-    eta: float = 0.6
-    depth_prior_sigma: float = 0.0
-
-    @classmethod
-    def from_config(cls, config: Config, **changes: object) -> MappingConfig:
-        """Huber radius and gate from Config's level 0 (huber_delta[0], max_residual[0]) and
-        its eta; other fields from ``changes`` or the defaults."""
-        base = cls(huber_delta=float(config.huber_delta[0]),
-                   max_residual=float(config.max_residual[0]), eta=float(config.eta))
-        return base._replace(**changes)
-
-
 class NormalEquations(NamedTuple):
     """Blocks of the Gauss-Newton system of the window (see the module doc for the layouts).
 
@@ -182,7 +147,9 @@ def pair_hosts(n: int) -> np.ndarray:
 
 
 def _as_mapping_config(config: MappingConfig | Config) -> MappingConfig:
-    return config if isinstance(config, MappingConfig) else MappingConfig.from_config(config)
+    """A MappingConfig as it is; a run's Config through ``derive.window_config`` (the numbers
+    the tracker's local map refines with)."""
+    return config if isinstance(config, MappingConfig) else window_config(config)
 
 
 def _rot(R: jnp.ndarray, P: jnp.ndarray) -> jnp.ndarray:
@@ -370,67 +337,6 @@ def normal_equations(
     return _with_depth_prior(_blocks(e, considered, inl, cfg), problem, cfg, hosts)
 
 
-def schur_solve(
-    H_cc: jnp.ndarray, H_cp: jnp.ndarray, h_pp: jnp.ndarray, b_c: jnp.ndarray,
-    b_p: jnp.ndarray, damping: float | jnp.ndarray, *, min_h: float = 1e-12,
-) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """Solve (H + damping diag(H)) delta = -b for H = [[H_cc, H_cp], [H_cp^T, diag(h_pp)]]
-    by eliminating the diagonal depth block (Schur complement):
-
-        S = A_cc - H_cp D^-1 H_cp^T,  S delta_c = -(b_c - H_cp D^-1 b_p),
-        delta_p = -D^-1 (b_p + H_cp^T delta_c),
-
-    with A_cc = H_cc + damping diag(H_cc), D = (1 + damping) h_pp. Depths with D <= min_h
-    (padding slots, unobserved edges; their H_cp columns are then zero too) get delta 0.
-    """
-    d = (1.0 + damping) * h_pp
-    seen = d > min_h
-    inv = jnp.where(seen, 1.0 / jnp.where(seen, d, 1.0), 0.0)
-    A_cc = H_cc + damping * jnp.diag(jnp.diag(H_cc))
-    W = H_cp * inv
-    S = A_cc - W @ H_cp.T
-    S = 0.5 * (S + S.T)
-    delta_c = -jnp.linalg.solve(S, b_c - W @ b_p)
-    delta_p = -inv * (b_p + H_cp.T @ delta_c)
-    return delta_c, delta_p
-
-
-def _index(idx: np.ndarray | jnp.ndarray, size: int) -> np.ndarray:
-    idx = np.asarray(idx)
-    if idx.dtype == bool:
-        if idx.shape != (size,):
-            raise ValueError(f"a boolean index needs shape ({size},), got {idx.shape}")
-        return np.flatnonzero(idx)
-    return idx.astype(np.int64).reshape(-1)
-
-
-def marginalize(
-    H: jnp.ndarray, b: jnp.ndarray, keep: np.ndarray, drop: np.ndarray, *,
-    rtol: float | None = None,
-) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """Schur complement of the quadratic 0.5 x^T H x + b^T x onto the kept variables:
-
-        H' = H_kk - H_kd H_dd^+ H_dk,   b' = b_k - H_kd H_dd^+ b_d.
-
-    keep, drop: static index arrays (or boolean masks) into H (the result follows keep's
-    order). H_dd^+ is the pseudo-inverse of the Jacobi-scaled block (eigenvalues under rtol
-    times the largest treated as zero; rtol defaults to jnp.linalg.pinv's), so a singular
-    H_dd (padding slots, unobserved depths: zero rows) contributes nothing along its null
-    space. Dense: O(k d + d^3).
-    """
-    size = H.shape[0]
-    keep, drop = _index(keep, size), _index(drop, size)
-    H = 0.5 * (H + H.T)
-    Hkk, Hkd, Hdd = H[np.ix_(keep, keep)], H[np.ix_(keep, drop)], H[np.ix_(drop, drop)]
-    dg = jnp.diag(Hdd)
-    s = jnp.where(dg > 0, 1.0 / jnp.sqrt(jnp.where(dg > 0, dg, 1.0)), 0.0)
-    Hdd_inv = s[:, None] * jnp.linalg.pinv(s[:, None] * Hdd * s[None, :], rtol=rtol,
-                                           hermitian=True) * s[None, :]
-    K = Hkd @ Hdd_inv
-    Hm = Hkk - K @ Hkd.T
-    return 0.5 * (Hm + Hm.T), b[keep] - K @ b[drop]
-
-
 def _tangent_offset(poses: jnp.ndarray, intrinsics: jnp.ndarray, prior: Prior) -> jnp.ndarray:
     """dx (m,) of the estimate from the prior's linearisation point, zero off its mask."""
     T = jaxlie.SE3.from_matrix(poses)
@@ -505,6 +411,15 @@ def _apply(problem: WindowProblem, delta_c: jnp.ndarray, delta_p: jnp.ndarray,
                             intrinsics=problem.intrinsics + delta_c[6 * n:])
 
 
+class _Judged(NamedTuple):
+    """The window's LM system: the normal equations at a point (with its own inlier set) and
+    the energy of that point judged with the inlier set of the point the try started from
+    (what ``refine`` compares against the start's own energy)."""
+
+    ne: NormalEquations
+    fixed_set_cost: jnp.ndarray
+
+
 def refine(
     problem: WindowProblem, config: MappingConfig | Config, prior: Prior | None = None,
     iterations: int | None = None,
@@ -518,11 +433,13 @@ def refine(
     with lam diag(H) damping, the scale restored (``fix_scale``, module doc), and the step
     kept only if it lowers the energy judged with the inlier set of the point it starts from
     (gating and the gradient test are steps in the cost: with the set re-decided inside the
-    comparison, LM stalls against them), then lam / 10 and a new inlier set, else lam x 10.
+    comparison, LM stalls against them), then lam x 0.1 and a new inlier set, else lam x 10
+    (``solvers.WINDOW_DAMPING``: lam from ``lambda_init``, within [1e-7, 1e4]).
     The first ``warmup_iterations`` tries move the poses alone (depths and intrinsics
     frozen: the poses, fitted by all edges at once, converge from further away than one
     edge's depth can, and the weakly observable intrinsics would absorb the depths' errors),
-    then ``iterations`` (argument, else the config's) joint ones. One lax.while_loop that
+    then ``iterations`` (argument, else the config's) joint ones, lam reset to
+    ``lambda_init`` for the first of them. One lax.while_loop that
     evaluates the residuals once per try; jit with ``config`` and ``iterations`` static
     (None stands for ``no_prior(problem)``; pass that explicitly to share one compiled
     program between calls with and without a prior).
@@ -565,28 +482,38 @@ def refine(
         ok = jnp.all(jnp.isfinite(dc)) & jnp.all(jnp.isfinite(dp))
         return jnp.where(ok, dc, 0.0), jnp.where(ok, dp, 0.0)
 
-    def cond(state):
-        i, _, _, _, size, _ = state
-        return (i <= warm + iters) & ((size >= cfg.step_tol) | (i <= warm))
+    def at(x) -> WindowProblem:
+        return problem._replace(poses=x[0], rho=x[1], intrinsics=x[2])
 
-    def body(state):
+    lm = dataclasses.replace(WINDOW_DAMPING, lam_init=cfg.lambda_init)
+
+    def cond(carry):
+        i, state, _ = carry
+        return (i <= warm + iters) & (lm.continues(state, cfg.step_tol) | (i <= warm))
+
+    def body(carry):
         # try i = 0 evaluates the start; tries 1..warm move the poses alone
-        i, x, ne, lam, _, cost0 = state
-        p = problem._replace(poses=x[0], rho=x[1], intrinsics=x[2])
-        lam = jnp.where(i == warm + 1, cfg.lambda_init, lam)
-        dc, dp = step(p, ne, lam, i > warm)
-        dc, dp = jnp.where(i == 0, 0.0, dc), jnp.where(i == 0, 0.0, dp)
-        p_new = _apply(p, dc, dp, cfg.min_rho)
-        if cfg.fix_scale:
-            p_new = _restore_scale(p_new, log_rho_sum, cfg.gauge_index)
-        ne_new, cost_same_set = system(p_new, ne.mask)
-        better = cost_same_set < ne.cost
-        x_new = (p_new.poses, p_new.rho, p_new.intrinsics)
-        x, ne = jax.tree.map(lambda a, b: jnp.where(better, a, b), (x_new, ne_new), (x, ne))
-        lam = jnp.clip(jnp.where(better, lam * 0.1, lam * 10.0), 1e-7, 1e4)
+        i, state, cost0 = carry
+        state = state._replace(lam=jnp.where(i == warm + 1, cfg.lambda_init, state.lam))
+
+        def solve(x, judged: _Judged, lam):
+            dc, dp = step(at(x), judged.ne, lam, i > warm)
+            return jnp.where(i == 0, 0.0, dc), jnp.where(i == 0, 0.0, dp)
+
+        def apply(x, delta):
+            p_new = _apply(at(x), delta[0], delta[1], cfg.min_rho)
+            if cfg.fix_scale:
+                p_new = _restore_scale(p_new, log_rho_sum, cfg.gauge_index)
+            return (p_new.poses, p_new.rho, p_new.intrinsics)
+
+        state, new = lm.step(
+            state, solve=solve, apply=apply,
+            evaluate=lambda x, judged: _Judged(*system(at(x), judged.ne.mask)),
+            accept=lambda old, new: new.fixed_set_cost < old.ne.cost,
+            norm=lambda d: jnp.sqrt(d[0] @ d[0] + d[1] @ d[1]))
         # a converged warm-up must not end the loop before the joint tries
-        size = jnp.where((i == 0) | (i == warm), jnp.inf, jnp.sqrt(dc @ dc + dp @ dp))
-        return i + 1, x, ne, lam, size, jnp.where(i == 0, ne_new.cost, cost0)
+        state = state._replace(step=jnp.where((i == 0) | (i == warm), jnp.inf, state.step))
+        return i + 1, state, jnp.where(i == 0, new.ne.cost, cost0)
 
     dtype = problem.rho.dtype
     log_rho_sum = jnp.sum(jnp.where(problem.valid,
@@ -596,9 +523,9 @@ def refine(
     ne0 = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
     ne0 = ne0._replace(cost=jnp.asarray(jnp.inf, shapes.cost.dtype))
     x0 = (problem.poses, problem.rho, problem.intrinsics)
-    lam0 = jnp.asarray(cfg.lambda_init, dtype)
-    init = (jnp.asarray(0), x0, ne0, lam0, jnp.asarray(jnp.inf, dtype), ne0.cost)
-    i, x, ne, _, _, cost0 = jax.lax.while_loop(cond, body, init)
+    init = (jnp.asarray(0), lm.init(x0, _Judged(ne0, ne0.cost), dtype), ne0.cost)
+    i, state, cost0 = jax.lax.while_loop(cond, body, init)
+    x, ne = state.x, state.system.ne
     out = problem._replace(poses=x[0], rho=x[1], intrinsics=x[2])
     stats = {"cost_before": cost0, "cost_after": ne.cost, "inliers": ne.count,
              "iterations": i - 1}
@@ -662,13 +589,10 @@ def marginalize_keyframe(
     # the depths first (diagonal block: 1 / h, zero for unobserved slots), then the pose's
     # 6 x 6 block: the same Schur complement as eliminating both at once, without the
     # (6 + A)^2 pseudo-inverse (whose eigh took up to a second on some windows)
-    seen = h_pp > 1e-12
-    inv = jnp.where(seen, 1.0 / jnp.where(seen, h_pp, 1.0), 0.0)
-    H = ne.H_cc - (Hcp * inv) @ Hcp.T
-    b = ne.b_c - (Hcp * inv) @ ne.b_p[cols]
+    e = eliminate_diagonal(ne.H_cc, Hcp, h_pp, ne.b_c, ne.b_p[cols])
     pose = np.arange(6 * drop_index, 6 * drop_index + 6)
     keep = np.setdiff1d(np.arange(m), pose)
-    Hm, bm = marginalize(0.5 * (H + H.T), b, keep, pose)
+    Hm, bm = marginalize(e.S, e.r, keep, pose)
     rest = remove_keyframe(problem, drop_index)
     return Prior(H=Hm, b=bm, poses=rest.poses, intrinsics=rest.intrinsics,
                  mask=jnp.ones(m - 6, bool))
@@ -680,16 +604,13 @@ def marginalize_edges(
     """Prior left by marginalising the inverse depths of ``edges`` (n, A) bool (their
     residuals in every keyframe of the window), added to ``prior`` (whose H is kept, its
     gradient taken at the current estimate: first-estimate Jacobians). The depth block is
-    diagonal, so the Schur complement needs no inverse but 1 / h_pp. Linearisation point: the
+    diagonal, so the Schur complement (``schur.eliminate_diagonal``) needs no inverse but
+    1 / h_pp. Linearisation point: the
     current poses and intrinsics."""
     n = problem.poses.shape[0]
     inl = normal_equations(problem, config).mask
     ne = normal_equations(problem, config, mask=inl & edges[pair_hosts(n)])
-    seen = ne.h_pp > 1e-12
-    inv = jnp.where(seen, 1.0 / jnp.where(seen, ne.h_pp, 1.0), 0.0)
-    W = ne.H_cp * inv
     H_p, g_p, _ = prior_terms(problem.poses, problem.intrinsics, prior)
-    H = H_p + ne.H_cc - W @ ne.H_cp.T
-    b = g_p + ne.b_c - W @ ne.b_p
-    return Prior(H=0.5 * (H + H.T), b=b, poses=problem.poses, intrinsics=problem.intrinsics,
+    e = eliminate_diagonal(H_p + ne.H_cc, ne.H_cp, ne.h_pp, g_p + ne.b_c, ne.b_p)
+    return Prior(H=e.S, b=e.r, poses=problem.poses, intrinsics=problem.intrinsics,
                  mask=jnp.ones_like(prior.mask))

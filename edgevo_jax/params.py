@@ -25,8 +25,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .config import Config
+from .derive import SolveKnobs, solve_knobs
 from .robust import EdgeWeighting
-from .solve import SolveKnobs, solve_knobs
 
 #: Default temperature of the soft gradient-consistency weight (see ``Params``): edges whose
 #: g(p) . g(p') lies more than ~0.1 from eta get a weight within 1e-4 of the hard test's.
@@ -88,7 +88,7 @@ def solve_knobs_of(params: Params, config: Config) -> SolveKnobs:
     float32, for ``tracker.Odometry(..., params=...)``): Huber radius exp(log_huber) per
     level, consistency threshold eta, and the weighting model when it is not the identity
     (any of weight_w, weight_b nonzero; otherwise ``weighting`` stays None and the solve
-    compiles to the program of ``solve.solve_knobs(config)``: ``Params.default(config)``
+    compiles to the program of ``derive.solve_knobs(config)``: ``Params.default(config)``
     gives the same numbers, hence the same trajectory). The plain tracker keeps the hard
     consistency test, so ``log_temperature`` does not enter; ``reobs_a`` enters the edge
     selection (``selection.keyframe_edges(..., reobs_a=)``), not the solve."""
@@ -102,11 +102,8 @@ def solve_knobs_of(params: Params, config: Config) -> SolveKnobs:
     if np.any(w != 0) or b != 0:
         weighting = EdgeWeighting(w, b, np.float32(config.canny_high),
                                   _level_features(config).astype(np.float32))
-    return solve_knobs(config)._replace(
-        huber_delta=np.exp(log_huber).astype(np.float32),
-        eta=np.asarray(params.eta, np.float32),
-        weighting=weighting,
-    )
+    return solve_knobs(config, huber_delta=np.exp(log_huber), eta=np.asarray(params.eta),
+                       weighting=weighting)
 
 
 def params_to_dict(params: Params) -> dict[str, float | list[float]]:

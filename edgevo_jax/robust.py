@@ -26,7 +26,7 @@ def huber_cost(r: jnp.ndarray, delta: float | jnp.ndarray) -> jnp.ndarray:
 
 
 class EdgeWeighting(NamedTuple):
-    """The per-edge weighting model as the solve takes it (``solve.SolveKnobs.weighting``):
+    """The per-edge weighting model as the solve takes it (``derive.SolveKnobs.weighting``):
     each inlier's Huber weight is scaled by 2 * sigmoid(w . f + b), f (4, K) the edge
     features of ``weighting_features``; mag_scale () normalises the gradient magnitude (the
     Canny high threshold) and level_feature (L,) is each pyramid level's feature value."""

@@ -18,10 +18,12 @@ import numpy as np
 
 from .camera import Intrinsics, unproject
 from .config import Config
+from .derive import SolveKnobs, SolveStructure, solve_knobs
 from .geometry import Rigid, rotation_translation
 from .interp import EdgeMap
 from .residuals import consistency_dots_at_level, residual_jacobian_grad, warp
-from .robust import EdgeWeighting, edge_weights, huber_cost, huber_weights
+from .robust import edge_weights, huber_cost, huber_weights
+from .solvers import DAMPING, LMState, lower_cost
 
 
 class KeyframeEdges(NamedTuple):
@@ -35,43 +37,6 @@ class KeyframeEdges(NamedTuple):
     grad: jnp.ndarray
     valid: jnp.ndarray
     mag: jnp.ndarray | None = None
-
-
-class SolveKnobs(NamedTuple):
-    """The numeric settings of the solve as arrays (a pytree), so that one compiled program
-    serves many configurations (``batch.py`` vmaps over them): per level huber_delta (L,) and
-    max_residual (L,) in that level's pixels, iterations (L,) int32; eta (), step_tol () and
-    max_rejects () int32. ``weighting``: the learnable per-edge weighting model
-    (``robust.EdgeWeighting``, from ``params.solve_knobs_of``), or None (the plain tracker;
-    a None compiles without it)."""
-
-    huber_delta: jnp.ndarray
-    max_residual: jnp.ndarray
-    eta: jnp.ndarray
-    iterations: jnp.ndarray
-    step_tol: jnp.ndarray
-    max_rejects: jnp.ndarray
-    weighting: EdgeWeighting | None = None
-
-
-def solve_knobs(config: Config) -> SolveKnobs:
-    """The ``SolveKnobs`` of a Config (numpy arrays, float32 and int32)."""
-    return SolveKnobs(
-        huber_delta=np.asarray(config.huber_delta, np.float32),
-        max_residual=np.asarray(config.max_residual, np.float32),
-        eta=np.asarray(config.eta, np.float32),
-        iterations=np.asarray(config.iterations, np.int32),
-        step_tol=np.asarray(config.step_tol, np.float32),
-        max_rejects=np.asarray(config.max_rejects, np.int32),
-    )
-
-
-def solve_structure(config: Config) -> Config:
-    """The static part of the solve once ``SolveKnobs`` carry its numbers: the number of
-    pyramid levels, as a default Config with that many levels, so that configurations that
-    differ in numbers only share one compiled program."""
-    n = config.num_levels
-    return Config(iterations=(10,) * n, huber_delta=(1.0,) * n, max_residual=(5.0,) * n)
 
 
 #: Layout of ``LevelSystem.sums``: the upper triangle of H row by row (21), g (6), the robust
@@ -253,54 +218,34 @@ def damped_step(system: LevelSystem, lam: jnp.ndarray) -> jnp.ndarray:
     return jnp.where(ok, xi, jnp.zeros_like(xi))
 
 
-class LMTry(NamedTuple):
-    """What one Levenberg-Marquardt try leaves: the pose, its system, the damping lam, the
-    norm of the step tried and how many tries in a row were rejected."""
-
-    T: Rigid
-    system: LevelSystem
-    lam: jnp.ndarray
-    step: jnp.ndarray
-    rejects: jnp.ndarray
-
-
-def lm_start(T: Rigid, system: LevelSystem) -> LMTry:
-    """The state before the first try from pose T with its system."""
-    dtype = system.sums.dtype
-    return LMTry(T, system, jnp.asarray(1e-4, dtype), jnp.asarray(jnp.inf, dtype),
-                 jnp.asarray(0, jnp.int32))
-
-
-def lower_cost(old: LevelSystem, new: LevelSystem) -> jnp.ndarray:
-    """Levenberg-Marquardt's acceptance test: the step lowered the robust cost."""
-    return new.cost < old.cost
-
-
-def lm_iteration(
+def pose_try(
     system_at: Callable[[Rigid], LevelSystem],
-    state: LMTry,
+    state: LMState,
     accept: Callable[[LevelSystem, LevelSystem], jnp.ndarray] = lower_cost,
-) -> LMTry:
-    """One Levenberg-Marquardt try: the damped step is kept when ``accept`` (old system, new
-    system) holds, by default when ``system_at`` says it lowers the robust cost; lam shrinks
-    10x after a kept step and grows 10x after a rejected one."""
-    xi = damped_step(state.system, state.lam)
-    T_new = state.T.retract(xi)
-    sys_new = system_at(T_new)
-    better = accept(state.system, sys_new)
-    T, system = jax.tree.map(
-        lambda a, b: jnp.where(better, a, b), (T_new, sys_new), (state.T, state.system)
+) -> LMState:
+    """One Levenberg-Marquardt try of the pose (``solvers.DAMPING``): the damped step
+    ``damped_step``, applied as T <- exp(xi) T, kept when ``accept`` (old system, new system)
+    holds, by default when ``system_at`` says it lowers the robust cost."""
+    state, _ = DAMPING.step(
+        state,
+        solve=lambda T, system, lam: damped_step(system, lam),
+        apply=lambda T, xi: T.retract(xi),
+        evaluate=lambda T, system: system_at(T),
+        accept=accept,
     )
-    lam = jnp.clip(jnp.where(better, state.lam * 0.1, state.lam * 10.0), 1e-6, 1e4)
-    rejects = jnp.where(better, 0, state.rejects + 1)
-    return LMTry(T, system, lam, jnp.sqrt(sum(xi[i] * xi[i] for i in range(6))), rejects)
+    return state
 
 
-def lm_continues(state: LMTry, knobs: SolveKnobs) -> jnp.ndarray:
+def pose_start(T: Rigid, system: LevelSystem) -> LMState:
+    """The pose solve's state before the first try from pose T with its system."""
+    return DAMPING.init(T, system, system.sums.dtype)
+
+
+def pose_continues(state: LMState, knobs: SolveKnobs) -> jnp.ndarray:
     """Whether a level tries again after ``state``: its step was at least ``step_tol`` and
     fewer than ``max_rejects`` tries in a row were rejected (each rejection only grows lam
     tenfold, the pose stays). The iteration budget is the caller's."""
-    return (state.step >= knobs.step_tol) & (state.rejects < knobs.max_rejects)
+    return DAMPING.continues(state, knobs.step_tol, knobs.max_rejects)
 
 
 def align_level(
@@ -318,8 +263,8 @@ def align_level(
 
     A step is kept only when it lowers the robust cost (the coarse, non-smooth distance fields
     make plain Gauss-Newton oscillate); lam shrinks 10x after a kept step and grows 10x after
-    a rejected one. lax.while_loop: fixed shapes, at most ``knobs.iterations[level]`` tries,
-    stopped earlier by ``lm_continues``.
+    a rejected one (``solvers.DAMPING``). lax.while_loop: fixed shapes, at most
+    ``knobs.iterations[level]`` tries, stopped earlier by ``pose_continues``.
     """
 
     def system_at(T):
@@ -327,14 +272,14 @@ def align_level(
 
     def cond(carry):
         i, state = carry
-        return (i < knobs.iterations[level]) & lm_continues(state, knobs)
+        return (i < knobs.iterations[level]) & pose_continues(state, knobs)
 
     def body(carry):
         i, state = carry
-        return i + 1, lm_iteration(system_at, state)
+        return i + 1, pose_try(system_at, state)
 
-    _, state = jax.lax.while_loop(cond, body, (jnp.asarray(0), lm_start(T, system_at(T))))
-    return state.T, state.system
+    _, state = jax.lax.while_loop(cond, body, (jnp.asarray(0), pose_start(T, system_at(T))))
+    return state.x, state.system
 
 
 def rms_flow(uv_from: jnp.ndarray, uv_to: jnp.ndarray, mask: jnp.ndarray) -> jnp.ndarray:
@@ -350,14 +295,15 @@ def track(
     edge_map: EdgeMap,
     T_init: jnp.ndarray,
     intr: Intrinsics,
-    config: Config,
+    config: Config | SolveStructure,
     knobs: SolveKnobs | None = None,
 ) -> TrackResult:
     """Align keyframe edges to the frame's distance-field pyramid, coarsest level first.
 
     dist: one field per level (H / 2**l, W / 2**l); edge_map: the frame's ``interp.EdgeMap``;
-    T_init: (4, 4) initial T_cur_kf. Jit with ``config`` static; its numbers are read from
-    ``knobs`` (default: ``solve_knobs(config)``), which may be traced.
+    T_init: (4, 4) initial T_cur_kf. ``config`` (static) gives the number of levels: a
+    ``derive.SolveStructure`` (``derive.solve_structure``) or a Config; the numbers are read
+    from ``knobs`` (traced; default ``derive.solve_knobs(config)``, which needs a Config).
     """
     knobs = solve_knobs(config) if knobs is None else knobs
     pts_k = unproject(intr, kf.uv, kf.rho)

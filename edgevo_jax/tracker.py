@@ -17,6 +17,7 @@ import numpy as np
 from .camera import Intrinsics
 from .chunk import track_next_jit
 from .config import Config
+from .derive import solve_knobs, solve_structure
 from .determinism import full_precision
 from .geometry import inverse_np, orthonormalise_np, scale_motion_np
 from .hostmem import aligned_array, to_host
@@ -25,7 +26,7 @@ from .local_map import LocalMap
 from .params import Params, solve_knobs_of
 from .preprocess import Frame, preprocess
 from .selection import keyframe_edges
-from .solve import KeyframeEdges, TrackResult, solve_knobs, solve_structure, track
+from .solve import KeyframeEdges, TrackResult, track
 
 _track_jit = full_precision(jax.jit(track, static_argnames="config"))
 

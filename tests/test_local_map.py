@@ -173,11 +173,12 @@ def test_fields_per_keyframe_equal_stacked_fields(driven):
 
 
 def test_grid_of_huber_radii_shares_one_compilation():
-    """The window's Huber radius, gate and eta are traced (split_numbers): two configurations
-    that differ in them only give the same static part, so one compiled program serves both."""
-    from edgevo_jax.local_map import mapping_config, split_numbers
+    """The window's Huber radius, gate and eta are traced (derive.split_window): two
+    configurations that differ in them only give the same static part, so one compiled
+    program serves both."""
+    from edgevo_jax.derive import split_window, window_config
 
-    a = split_numbers(mapping_config(Config(huber_delta=(0.5,) * 3)))
-    b = split_numbers(mapping_config(Config(huber_delta=(2.0,) * 3, max_residual=(4.0,) * 3)))
+    a = split_window(window_config(Config(huber_delta=(0.5,) * 3)))
+    b = split_window(window_config(Config(huber_delta=(2.0,) * 3, max_residual=(4.0,) * 3)))
     assert a[0] == b[0] and hash(a[0]) == hash(b[0])
     assert float(a[1][0]) == 0.5 and float(b[1][0]) == 2.0 and float(b[1][1]) == 4.0

@@ -16,14 +16,14 @@ from hypothesis import strategies as st
 from edgevo_jax import Config
 from edgevo_jax.cli import BUNDLED_CLIP
 from edgevo_jax.datasets import load_sequence
+from edgevo_jax.derive import MappingConfig, split_window, window_config
 from edgevo_jax.interp import stack_edge_maps
+from edgevo_jax.local_map import LocalMap, _refine_jit
 from edgevo_jax.mapping import (
-    MappingConfig,
     WindowProblem,
     append_keyframe_to_prior,
     edge_residual,
     edge_residuals,
-    marginalize,
     marginalize_edges,
     marginalize_keyframe,
     no_prior,
@@ -31,9 +31,9 @@ from edgevo_jax.mapping import (
     pair_hosts,
     refine,
     remove_keyframe,
-    schur_solve,
 )
 from edgevo_jax.preprocess import frame_from_edges, preprocess
+from edgevo_jax.schur import eliminate_diagonal, marginalize, schur_solve
 
 refine_jit = jax.jit(refine, static_argnames=("config", "iterations"))
 residuals_jit = jax.jit(edge_residuals, static_argnames="eta")
@@ -273,10 +273,37 @@ def test_remove_keyframe_keeps_the_others_in_order():
         remove_keyframe(p, n)
 
 
-def test_mapping_config_from_config_reads_level_0():
-    cfg = MappingConfig.from_config(Config(huber_delta=(1.5, 2.0, 2.0),
-                                           max_residual=(4.0, 5.0, 5.0)), iterations=3)
-    assert (cfg.huber_delta, cfg.max_residual, cfg.eta, cfg.iterations) == (1.5, 4.0, 0.6, 3)
+def test_window_config_reads_level_0_and_the_mapping_fields():
+    cfg = window_config(Config(huber_delta=(1.5, 2.0, 2.0), max_residual=(4.0, 5.0, 5.0),
+                               mapping_iterations=3, mapping_intrinsics=True,
+                               mapping_depth_sigma=0.02))
+    assert (cfg.huber_delta, cfg.max_residual, cfg.eta) == (1.5, 4.0, 0.6)
+    assert (cfg.iterations, cfg.warmup_iterations, cfg.refine_intrinsics,
+            cfg.depth_prior_sigma) == (3, 3, True, 0.02)
+
+
+def test_eliminate_diagonal_equals_dense_marginalize():
+    """The diagonal-block elimination (one implementation for the damped solve and both
+    marginalisations) equals the dense Schur complement, and drops unobserved entries."""
+    rng = np.random.default_rng(3)
+    m, n = 7, 9
+    J = rng.normal(size=(40, m + n))
+    J[:, m + 2] = 0.0  # an unobserved depth: zero row and column
+    H = J.T @ J
+    H[m:, m:] = np.diag(np.diag(H[m:, m:]))  # the depth block is diagonal
+    b = rng.normal(size=m + n)
+    b[m + 2] = 0.0
+    with jax.enable_x64(True):
+        e = eliminate_diagonal(jnp.asarray(H[:m, :m]), jnp.asarray(H[:m, m:]),
+                               jnp.asarray(np.diag(H[m:, m:])), jnp.asarray(b[:m]),
+                               jnp.asarray(b[m:]))
+        H_ref, b_ref = marginalize(jnp.asarray(H), jnp.asarray(b), np.arange(m),
+                                   np.arange(m, m + n))
+        S, r, inv, H_ref, b_ref = (np.asarray(x) for x in (*e, H_ref, b_ref))
+    np.testing.assert_allclose(S, H_ref, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(r, b_ref, rtol=1e-9, atol=1e-9)
+    np.testing.assert_array_equal(S, S.T)
+    assert inv[2] == 0.0 and np.all(inv[np.arange(n) != 2] > 0)
 
 
 # --- 4. a window rendered from a real depth frame -------------------------------------------
@@ -432,6 +459,35 @@ def test_refine_recovers_the_window(scene, refined):
     assert after["c"] < before["c"] / 3, (before, after)
     assert np.array_equal(np.asarray(out.rho)[~truth["valid"]], truth["rho"][~truth["valid"]])
     np.testing.assert_array_equal(out.poses[0], start.poses[0])  # the gauge keyframe
+
+
+def test_refine_with_a_config_refines_like_the_local_map(scene):
+    """``refine(problem, Config())`` takes its numbers where the tracker's local map does
+    (``derive.window_config``): the same MappingConfig and, with the local map's traced
+    numbers, the same refined window bit for bit; plain MappingConfig defaults (10 joint
+    tries, no warm-up, intrinsics refined, no depth prior) refine differently."""
+    s = perturbed(first(scene), seed=2)
+    problem = as_problem(s)._replace(
+        rho_prior=jnp.asarray(np.asarray(first(scene)["rho"], np.float32)))
+    problem = jax.tree.map(lambda a: jnp.asarray(a, jnp.float32)
+                           if jnp.issubdtype(a.dtype, jnp.floating) else a, problem)
+    config = Config()
+    h, w = scene["fields"].shape[1:]
+    local = LocalMap(config, np.asarray(s["intrinsics"], np.float32), (h, w))
+    assert local._mcfg == window_config(config)
+    assert (local._structure, [float(x) for x in local._numbers]) == (
+        split_window(window_config(config))[0], [float(x) for x in split_window(
+            window_config(config))[1]])
+    prior = no_prior(problem)
+    ours, st = refine_jit(problem, config, prior)
+    theirs, st_l = _refine_jit(problem, local._numbers, prior, config=local._structure)
+    for a, b in ((ours.poses, theirs.poses), (ours.rho, theirs.rho),
+                 (ours.intrinsics, theirs.intrinsics)):
+        np.testing.assert_array_equal(a, b)
+    assert int(st["iterations"]) == int(st_l["iterations"]) == 2 * config.mapping_iterations
+    np.testing.assert_array_equal(ours.intrinsics, problem.intrinsics)  # not refined
+    plain, _ = refine_jit(problem, MappingConfig(), prior)
+    assert not np.array_equal(np.asarray(plain.poses), np.asarray(ours.poses))
 
 
 # --- 5. marginalising a keyframe, then refining with the prior ------------------------------

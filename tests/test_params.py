@@ -15,12 +15,13 @@ from edgevo_jax import Config
 from edgevo_jax.chunk import track_next_jit
 from edgevo_jax.cli import BUNDLED_CLIP, main
 from edgevo_jax.datasets import load_sequence
+from edgevo_jax.derive import SolveStructure, solve_knobs, solve_structure
 from edgevo_jax.learn import track_differentiable
 from edgevo_jax.params import Params, params_from_dict, params_to_dict, solve_knobs_of
 from edgevo_jax.preprocess import preprocess
 from edgevo_jax.runner import run_sequence
 from edgevo_jax.selection import keyframe_edges
-from edgevo_jax.solve import KeyframeEdges, solve_knobs, solve_structure, track
+from edgevo_jax.solve import KeyframeEdges, track
 
 CONFIG = Config(num_edges=256)
 
@@ -43,6 +44,8 @@ def test_default_params_give_the_plain_trajectory(bundled):
     same trajectory as no Params, bit for bit."""
     knobs, ref = solve_knobs_of(Params.default(CONFIG), CONFIG), solve_knobs(CONFIG)
     assert knobs.weighting is None
+    assert solve_structure(CONFIG) == SolveStructure(CONFIG.num_levels)  # static, hashable
+    assert hash(solve_structure(CONFIG)) == hash(solve_structure(CONFIG.replace(eta=0.5)))
     for a, b in zip(knobs, ref, strict=True):
         if a is not None:
             np.testing.assert_array_equal(a, b)
