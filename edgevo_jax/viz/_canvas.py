@@ -48,6 +48,7 @@ def figure(figsize: tuple[float, float], **kwargs: Any) -> Any:
 
 
 def save(fig: Any, path: str | os.PathLike[str], dpi: float | None = None) -> Path:
+    """Write ``fig`` as a PNG at ``path`` (parent folders made), ``dpi`` or the default."""
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, format="png", dpi=DPI if dpi is None else dpi)
