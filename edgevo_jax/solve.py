@@ -13,12 +13,11 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import jaxlie
 import numpy as np
 
 from .camera import Intrinsics, unproject
 from .config import Config
-from .geometry import Rigid, rotation_translation
+from .geometry import Pose
 from .interp import EdgeMap
 from .residuals import consistency_dots_at_level, residual_jacobian_grad, warp
 from .robust import EdgeWeighting, edge_weights, huber_cost, huber_weights
@@ -138,7 +137,7 @@ def level_to_0(uv_l: jnp.ndarray, level: int) -> jnp.ndarray:
 
 
 def normal_equations(
-    T: Rigid | jaxlie.SE3,
+    T: Pose,
     pts_k: jnp.ndarray,
     kf: KeyframeEdges,
     field: jnp.ndarray,
@@ -262,14 +261,14 @@ class LMTry(NamedTuple):
     """What one Levenberg-Marquardt try leaves: the pose, its system, the damping lam, the
     norm of the step tried and how many tries in a row were rejected."""
 
-    T: Rigid
+    T: Pose
     system: LevelSystem
     lam: jnp.ndarray
     step: jnp.ndarray
     rejects: jnp.ndarray
 
 
-def lm_start(T: Rigid, system: LevelSystem) -> LMTry:
+def lm_start(T: Pose, system: LevelSystem) -> LMTry:
     """The state before the first try from pose T with its system."""
     dtype = system.sums.dtype
     return LMTry(T, system, jnp.asarray(1e-4, dtype), jnp.asarray(jnp.inf, dtype),
@@ -282,7 +281,7 @@ def lower_cost(old: LevelSystem, new: LevelSystem) -> jnp.ndarray:
 
 
 def lm_iteration(
-    system_at: Callable[[Rigid], LevelSystem],
+    system_at: Callable[[Pose], LevelSystem],
     state: LMTry,
     accept: Callable[[LevelSystem, LevelSystem], jnp.ndarray] = lower_cost,
 ) -> LMTry:
@@ -309,7 +308,7 @@ def lm_continues(state: LMTry, knobs: SolveKnobs) -> jnp.ndarray:
 
 
 def align_level(
-    T: Rigid,
+    T: Pose,
     pts_k: jnp.ndarray,
     kf: KeyframeEdges,
     field: jnp.ndarray,
@@ -317,7 +316,7 @@ def align_level(
     intr: Intrinsics,
     level: int,
     knobs: SolveKnobs,
-) -> tuple[Rigid, LevelSystem]:
+) -> tuple[Pose, LevelSystem]:
     """Levenberg-Marquardt on the Huber-weighted (Gauss-Newton) normal equations at one level;
     returns the pose and the normal equations at it.
 
@@ -366,14 +365,14 @@ def track(
     """
     knobs = solve_knobs(config) if knobs is None else knobs
     pts_k = unproject(intr, kf.uv, kf.rho)
-    T = Rigid.from_matrix(jnp.asarray(T_init, pts_k.dtype))
+    T = Pose.from_matrix(jnp.asarray(T_init, pts_k.dtype))
     for level in reversed(range(config.num_levels)):
         T, final = align_level(T, pts_k, kf, dist[level], edge_map, intr, level, knobs)
     return track_result(T, final, pts_k, kf, dist[0].shape, intr)
 
 
 def track_result(
-    T: Rigid,
+    T: Pose,
     final: LevelSystem,
     pts_k: jnp.ndarray,
     kf: KeyframeEdges,
@@ -391,8 +390,7 @@ def track_result(
         kf.valid & (pts_c[2] > 1e-6) & (uv_c[0] >= 0) & (uv_c[0] <= w - 1)
         & (uv_c[1] >= 0) & (uv_c[1] <= h - 1)
     )
-    R, t = rotation_translation(T)
-    uv_t, _ = warp(intr, Rigid(jnp.eye(3, dtype=R.dtype), t), pts_k)
+    uv_t, _ = warp(intr, Pose(jnp.eye(3, dtype=T.t.dtype), T.t), pts_k)
     inliers = final.inliers
     return TrackResult(
         T_c_k=T.as_matrix(),
