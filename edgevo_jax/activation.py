@@ -19,12 +19,13 @@ import jax
 import jax.numpy as jnp
 
 from .camera import Intrinsics
+from .geometry import Pose
 from .interp import bilinear, nearest_edge_gradient
 from .residuals import warp
 
 
 def carried_gradient(
-    intr: Intrinsics, T_new_host, pts_host: jnp.ndarray, grad: jnp.ndarray
+    intr: Intrinsics, T_new_host: Pose, pts_host: jnp.ndarray, grad: jnp.ndarray
 ) -> jnp.ndarray:
     """Normalised gradient directions (2, N) of host edges after the warp into the new
     keyframe: the image of a small step along the host gradient (first-order warp)."""
@@ -39,7 +40,7 @@ def carried_gradient(
 
 
 def reproject(
-    intr: Intrinsics, T_new_host, pts_host: jnp.ndarray, grad: jnp.ndarray,
+    intr: Intrinsics, T_new_host: Pose, pts_host: jnp.ndarray, grad: jnp.ndarray,
     field: jnp.ndarray, edge_map: jnp.ndarray,
 ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray]:
     """Host edges (points (3, N) in the host camera, gradients (2, N)) seen from the new

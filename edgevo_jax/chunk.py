@@ -4,10 +4,10 @@ prediction in keyframe-relative poses and a ``lax.scan`` over a chunk of frames.
 The prediction is made from the last two frames' poses relative to the keyframe,
 A = T_(i-1)_kf and B = T_(i-2)_kf: T_i_kf = A B^-1 A (constant velocity; in world poses
 T_w_i = T_w_(i-1) T_w_(i-2)^-1 T_w_(i-1)). The frame-by-frame driver and the scan both
-predict with this one function from the same float32 inputs, so that they give the same
-trajectory: the scan is the driver's loop moved onto the device, valid until the host makes
-a decision that changes the state (a new keyframe, a loss, a recovery), after which the host
-re-tracks the rest of the chunk (``tracker.Odometry.track_chunk``).
+predict with ``predict_matrix`` (``geometry.predict``) from the same float32 inputs, so that
+they give the same trajectory: the scan is the driver's loop moved onto the device, valid
+until the host makes a decision that changes the state (a new keyframe, a loss, a recovery),
+after which the host re-tracks the rest of the chunk (``tracker.Odometry.track_chunk``).
 """
 
 from __future__ import annotations
@@ -21,21 +21,17 @@ from .camera import Intrinsics
 from .config import Config
 from .derive import SolveKnobs, SolveStructure
 from .determinism import full_precision
+from .geometry import Pose, predict
 from .interp import EdgeMap
 from .solve import KeyframeEdges, TrackResult, track
 
 
-def rigid_inverse(T: jnp.ndarray) -> jnp.ndarray:
-    """Inverse of a rigid transform (4, 4): [R^T, -R^T t]."""
-    R, t = T[:3, :3], T[:3, 3]
-    top = jnp.concatenate([R.T, -(R.T @ t)[:, None]], axis=1)
-    return jnp.concatenate([top, T[3:]], axis=0)
-
-
-def predict(A: jnp.ndarray, B: jnp.ndarray) -> jnp.ndarray:
-    """Constant velocity in keyframe-relative poses: T_i_kf = A B^-1 A, with A = T_(i-1)_kf
-    and B = T_(i-2)_kf (4, 4)."""
-    return A @ (rigid_inverse(B) @ A)
+def predict_matrix(A: jnp.ndarray, B: jnp.ndarray) -> jnp.ndarray:
+    """Constant velocity in keyframe-relative poses (``geometry.predict``) on the matrices
+    the scan carries: T_i_kf = A B^-1 A (4, 4), with A = T_(i-1)_kf and B = T_(i-2)_kf
+    (4, 4, rigid: their last rows are not read)."""
+    return predict(Pose.from_matrix(A, orthonormalise=None),
+                   Pose.from_matrix(B, orthonormalise=None)).as_matrix()
 
 
 def track_next(
@@ -49,8 +45,8 @@ def track_next(
     config: Config | SolveStructure,
 ) -> TrackResult:
     """Track one frame (dist pyramid, ``interp.EdgeMap``) from the constant-velocity
-    prediction of its last two keyframe-relative poses A, B (see ``predict``)."""
-    return track(kf, dist, edge_map, predict(A, B), intr, config, knobs)
+    prediction of its last two keyframe-relative poses A, B (see ``predict_matrix``)."""
+    return track(kf, dist, edge_map, predict_matrix(A, B), intr, config, knobs)
 
 
 def track_chunk(

@@ -64,10 +64,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .camera import Intrinsics, unproject
-from .chunk import predict
+from .chunk import predict_matrix
 from .config import Config
 from .derive import SolveKnobs, solve_knobs
-from .geometry import Rigid
+from .geometry import Pose
 from .interp import bicubic_with_grad
 from .params import Params, weighting_of
 from .preprocess import Frame
@@ -92,7 +92,7 @@ INTERPOLATIONS = ("bilinear", "bicubic")
 
 
 def _residuals(
-    field: jnp.ndarray, intr: Intrinsics, T: Rigid, pts_k: jnp.ndarray, interpolation: str
+    field: jnp.ndarray, intr: Intrinsics, T: Pose, pts_k: jnp.ndarray, interpolation: str
 ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray]:
     """``residuals.residual_jacobian_grad`` with the field read by ``interpolation``:
     residuals (K,), Jacobian (6, K), validity (K,), warped pixels (2, K), field gradient
@@ -123,7 +123,7 @@ class _Spec(NamedTuple):
 
 
 def _system(
-    T: Rigid,
+    T: Pose,
     params: Params,
     data: _EdgeData,
     mask: jnp.ndarray,
@@ -155,7 +155,7 @@ def _system(
 
 
 def _decisions(
-    T: Rigid, params: Params, data: _EdgeData, kf: KeyframeEdges,
+    T: Pose, params: Params, data: _EdgeData, kf: KeyframeEdges,
     edge_map: jnp.ndarray, level: int, spec: _Spec,
 ) -> tuple[jnp.ndarray, jnp.ndarray]:
     """The hard decisions at T (as ``solve.normal_equations`` takes them): the inlier mask
@@ -184,9 +184,9 @@ def _lm_try(system_at, state: LMState, settle: bool) -> LMState:
 
 
 def _align(
-    T: Rigid, system_at, iterations: int, knobs: SolveKnobs, checkpoint: bool,
+    T: Pose, system_at, iterations: int, knobs: SolveKnobs, checkpoint: bool,
     settle: bool = False,
-) -> tuple[Rigid, LevelSystem]:
+) -> tuple[Pose, LevelSystem]:
     """``iterations`` LM tries (a scan: reverse-differentiable), frozen once
     ``solve.pose_continues`` says stop (what ``solve.align_level``'s while loop does)."""
 
@@ -203,16 +203,16 @@ def _align(
     return state.x, state.system
 
 
-def _flat(T: Rigid) -> jnp.ndarray:
+def _flat(T: Pose) -> jnp.ndarray:
     """A pose's parameters as one array (12,): R row by row, then t."""
     return jnp.concatenate([T.R.reshape(-1), T.t])
 
 
-def _unflat(x: jnp.ndarray) -> Rigid:
-    return Rigid(x[:9].reshape(3, 3), x[9:])
+def _unflat(x: jnp.ndarray) -> Pose:
+    return Pose(x[:9].reshape(3, 3), x[9:])
 
 
-def _tangent_cotangent(T: Rigid, ct: jnp.ndarray) -> jnp.ndarray:
+def _tangent_cotangent(T: Pose, ct: jnp.ndarray) -> jnp.ndarray:
     """Cotangent of the pose parameters (``_flat``, 12) -> of a left twist at T (6)."""
     _, vjp = jax.vjp(lambda xi: _flat(T.retract(xi)), jnp.zeros(6, ct.dtype))
     return vjp(ct)[0]
@@ -333,7 +333,7 @@ def track_differentiable(
     else:
         kf_s, dist_s, T_init_s, intr_s, params_s, mag_s = kf, dist, T_init, intr, params, mag
 
-    T = Rigid.from_matrix(jnp.asarray(T_init_s, dist[0].dtype))
+    T = Pose.from_matrix(jnp.asarray(T_init_s, dist[0].dtype))
     for level in reversed(range(config.num_levels)):
         data = _data_at(level, kf_s, dist_s, intr_s, mag_s)
 
@@ -397,7 +397,7 @@ def level_system(
     spec = _Spec(config, consistency, interpolation)
     intr, mag = _as_arrays(kf, dist, intr, mag)
     data = _data_at(level, kf, dist, intr, mag)
-    T = Rigid.from_matrix(jnp.asarray(T_c_k, dist[0].dtype))
+    T = Pose.from_matrix(jnp.asarray(T_c_k, dist[0].dtype))
     mask, dots = _decisions(T, params, data, kf, edge_map, level, spec)
     return _system(T, params, data, mask, dots, kf.valid, level, spec), mask, dots
 
@@ -422,7 +422,7 @@ def track_window(
 ) -> TrackResult:
     """``track_differentiable`` over a window of N frames in order against one keyframe, each
     frame starting from the constant-velocity prediction of the two before it
-    (``chunk.predict``; A = T_(i-1)_kf, B = T_(i-2)_kf (4, 4) for the first frame): the scan
+    (``chunk.predict_matrix``; A = T_(i-1)_kf, B = T_(i-2)_kf (4, 4) for the first frame): the scan
     tracker's loop (``chunk.track_chunk``) with learnable params. dist holds one
     (N, H / 2**l, W / 2**l) array per level, edge_map (N, H, W) arrays; ``options`` are
     ``track_differentiable``'s keywords. Returns the N TrackResults stacked on a leading
@@ -431,7 +431,7 @@ def track_window(
 
     def step(carry, frame):
         a, b = carry
-        res = track_differentiable(kf, frame[0], frame[1], predict(a, b), intr, params,
+        res = track_differentiable(kf, frame[0], frame[1], predict_matrix(a, b), intr, params,
                                    config, **options)
         return (res.T_c_k, a), res
 
@@ -468,8 +468,9 @@ def _safe_norm(x: jnp.ndarray) -> jnp.ndarray:
 
 def _relative(T_est: jnp.ndarray, T_gt: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
     """E = T_gt^-1 T_est as (rotation (3, 3), translation (3,)), from 4x4 matrices."""
-    R_gt, R_est = T_gt[:3, :3], T_est[:3, :3]
-    return R_gt.T @ R_est, R_gt.T @ (T_est[:3, 3] - T_gt[:3, 3])
+    E = Pose.from_matrix(T_gt, orthonormalise=None).inverse() \
+        @ Pose.from_matrix(T_est, orthonormalise=None)
+    return E.R, E.t
 
 
 def relative_pose_error(T_est: jnp.ndarray, T_gt: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
@@ -496,13 +497,6 @@ def pose_loss(T_est: jnp.ndarray, T_gt: jnp.ndarray, *, rot_weight: float = 1.0)
     rot = jnp.sum((R - jnp.eye(3, dtype=R.dtype)) ** 2) / 2.0
     return jnp.sum(t * t) + rot_weight**2 * rot
 
-def _rigid_inverse(T: jnp.ndarray) -> jnp.ndarray:
-    """Inverse of rigid transforms (..., 4, 4)."""
-    R, t = T[..., :3, :3], T[..., :3, 3]
-    Rt = jnp.swapaxes(R, -1, -2)
-    top = jnp.concatenate([Rt, -(Rt @ t[..., None])], axis=-1)
-    return jnp.concatenate([top, T[..., 3:, :]], axis=-2)
-
 
 def window_rpe_loss(
     T_est: jnp.ndarray,
@@ -525,7 +519,8 @@ def window_rpe_loss(
     if not pairs:
         raise ValueError(f"a window of {n} poses has no pair {deltas} frames apart")
     i, j = (jnp.asarray(x) for x in zip(*pairs, strict=True))
-    inv_est, inv_gt = _rigid_inverse(T_est), _rigid_inverse(T_gt)
+    inv_est, inv_gt = (Pose.from_matrix(T, orthonormalise=None).inverse().as_matrix()
+                       for T in (T_est, T_gt))
     rel_est, rel_gt = inv_est[i] @ T_est[j], inv_gt[i] @ T_gt[j]
     losses = jax.vmap(partial(rpe_loss, rot_weight=rot_weight))(rel_est, rel_gt)
     if valid is None:

@@ -34,7 +34,6 @@ from dataclasses import dataclass, field
 
 import jax
 import jax.numpy as jnp
-import jaxlie
 import numpy as np
 
 from .activation import activate, reproject
@@ -42,7 +41,7 @@ from .camera import Intrinsics, unproject
 from .config import Config
 from .derive import MappingConfig, join_window, split_window, window_config
 from .determinism import full_precision
-from .geometry import inverse_np, orthonormalise_np
+from .geometry import Pose, inverse_np, orthonormalise_np
 from .hostmem import to_host
 from .interp import EdgeMap
 from .mapping import (
@@ -134,7 +133,8 @@ def _activation_step(intr, T_new_host, uv, rho, grad, valid, active, track, fiel
     each host's ``activatable`` mask (valid slots on continuous depth)."""
     def one(T, uv_h, rho_h, grad_h):
         pts = unproject(intr, uv_h, rho_h)
-        return reproject(intr, jaxlie.SE3.from_matrix(T), pts, grad_h, field_new, nearest_new)
+        return reproject(intr, Pose.from_matrix(T, orthonormalise="quaternion"), pts, grad_h,
+                         field_new, nearest_new)
 
     uv_new, r, cos, vis = jax.vmap(one)(T_new_host, uv, rho, grad)
     seen = valid & vis & (r <= gate) & (cos >= math.cos(math.radians(max_angle_deg)))

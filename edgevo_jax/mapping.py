@@ -40,12 +40,12 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import jaxlie
 import numpy as np
 
 from .camera import Intrinsics, project, unproject
 from .config import Config
 from .derive import MappingConfig, window_config
+from .geometry import Pose
 from .interp import EdgeMap, bilinear, bilinear_with_grad
 from .residuals import consistency_dots_known
 from .robust import huber_cost, huber_weights
@@ -339,9 +339,9 @@ def normal_equations(
 
 def _tangent_offset(poses: jnp.ndarray, intrinsics: jnp.ndarray, prior: Prior) -> jnp.ndarray:
     """dx (m,) of the estimate from the prior's linearisation point, zero off its mask."""
-    T = jaxlie.SE3.from_matrix(poses)
-    T0 = jaxlie.SE3.from_matrix(prior.poses)
-    dx = jnp.concatenate([(T @ T0.inverse()).log().reshape(-1), intrinsics - prior.intrinsics])
+    T = Pose.from_matrix(poses, orthonormalise=None)
+    T0 = Pose.from_matrix(prior.poses, orthonormalise=None)
+    dx = jnp.concatenate([T.log_relative(T0).reshape(-1), intrinsics - prior.intrinsics])
     return jnp.where(prior.mask, dx, 0.0)
 
 
@@ -402,9 +402,9 @@ def _restore_scale(problem: WindowProblem, log_rho_sum: jnp.ndarray,
 def _apply(problem: WindowProblem, delta_c: jnp.ndarray, delta_p: jnp.ndarray,
            min_rho: float) -> WindowProblem:
     n, _, A = problem.uv.shape
-    # exp(xi) T as a 4x4 product (no matrix -> quaternion round trip)
-    T = jnp.einsum("kab,kbc->kac", jaxlie.SE3.exp(delta_c[: 6 * n].reshape(n, 6)).as_matrix(),
-                   problem.poses)
+    # exp(xi) T as a 4x4 product
+    T = (Pose.exp(delta_c[: 6 * n].reshape(n, 6), method="quaternion")
+         @ Pose.from_matrix(problem.poses, orthonormalise=None)).as_matrix()
     rho = jnp.where(problem.valid,
                     jnp.maximum(problem.rho + delta_p.reshape(n, A), min_rho), problem.rho)
     return problem._replace(poses=T, rho=rho,

@@ -12,6 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from edgevo_jax.geometry import inverse_np, rotation_angle_np
 from edgevo_jax.io import poses7_to_matrices
 
 __all__ = ["TrajectoryAlignment", "align_trajectory", "associate_timestamps", "ate", "horn_align",
@@ -201,26 +202,6 @@ def ate(
     return {**_stats(al.error), "n": int(al.pairs.shape[0])}
 
 
-def _inv_se3(t: np.ndarray) -> np.ndarray:
-    out = np.zeros_like(t)
-    rt = np.swapaxes(t[..., :3, :3], -1, -2)
-    out[..., :3, :3] = rt
-    out[..., :3, 3] = -np.einsum("...ij,...j->...i", rt, t[..., :3, 3])
-    out[..., 3, 3] = 1.0
-    return out
-
-
-def _rotation_angle(r: np.ndarray) -> np.ndarray:
-    """Rotation angles (radians) of matrices (..., 3, 3), accurate near 0 and pi."""
-    cos = (np.trace(r, axis1=-2, axis2=-1) - 1.0) / 2.0
-    skew = np.stack(
-        [r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]],
-        axis=-1,
-    )
-    sin = np.linalg.norm(skew, axis=-1) / 2.0
-    return np.arctan2(sin, cos)
-
-
 def rpe(
     gt_t: np.ndarray,
     gt_poses7: np.ndarray,
@@ -261,11 +242,11 @@ def rpe(
     if not np.any(ok):
         return nan
     i, j, dt = i[ok], j[ok], dt[ok]
-    rel_gt = _inv_se3(g[i]) @ g[j]
-    rel_est = _inv_se3(p[i]) @ p[j]
-    e = _inv_se3(rel_gt) @ rel_est
+    rel_gt = inverse_np(g[i]) @ g[j]
+    rel_est = inverse_np(p[i]) @ p[j]
+    e = inverse_np(rel_gt) @ rel_est
     trans = np.linalg.norm(e[:, :3, 3], axis=-1) / dt
-    rot = np.degrees(_rotation_angle(e[:, :3, :3])) / dt
+    rot = np.degrees(rotation_angle_np(e)) / dt
     return {
         "trans_rmse_m_per_s": float(np.sqrt(np.mean(trans * trans))),
         "rot_rmse_deg_per_s": float(np.sqrt(np.mean(rot * rot))),

@@ -12,10 +12,9 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import jaxlie
 
 from .camera import Intrinsics, project
-from .geometry import retract_left, transform_points
+from .geometry import Pose
 from .interp import (
     EdgeMap,
     bilinear,
@@ -25,16 +24,16 @@ from .interp import (
 
 
 def warp(
-    intr: Intrinsics, T_c_k: jaxlie.SE3, pts_k: jnp.ndarray
+    intr: Intrinsics, T_c_k: Pose, pts_k: jnp.ndarray
 ) -> tuple[jnp.ndarray, jnp.ndarray]:
     """w(rho, p, xi): keyframe points (3, K) into the current camera; returns the warped
     pixels (2, K) and the points P' (3, K) in the current camera frame."""
-    pts = transform_points(T_c_k, pts_k)
+    pts = T_c_k.apply(pts_k)
     return project(intr, pts), pts
 
 
 def residual(
-    field: jnp.ndarray, intr: Intrinsics, T_c_k: jaxlie.SE3, pts_k: jnp.ndarray
+    field: jnp.ndarray, intr: Intrinsics, T_c_k: Pose, pts_k: jnp.ndarray
 ) -> tuple[jnp.ndarray, jnp.ndarray]:
     """Distance residuals r (K,) and validity (in front of the camera and inside the field)."""
     uv_c, pts = warp(intr, T_c_k, pts_k)
@@ -43,7 +42,7 @@ def residual(
 
 
 def residual_and_jacobian(
-    field: jnp.ndarray, intr: Intrinsics, T_c_k: jaxlie.SE3, pts_k: jnp.ndarray
+    field: jnp.ndarray, intr: Intrinsics, T_c_k: Pose, pts_k: jnp.ndarray
 ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray]:
     """Residuals (K,), analytic Jacobian w.r.t. a left twist [v, w] (6, K), validity (K,)
     and warped pixels (2, K)."""
@@ -52,7 +51,7 @@ def residual_and_jacobian(
 
 
 def residual_jacobian_grad(
-    field: jnp.ndarray, intr: Intrinsics, T_c_k: jaxlie.SE3, pts_k: jnp.ndarray
+    field: jnp.ndarray, intr: Intrinsics, T_c_k: Pose, pts_k: jnp.ndarray
 ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray]:
     """``residual_and_jacobian`` and the field's gradient at the warped pixels (2, K)."""
     uv_c, pts = warp(intr, T_c_k, pts_k)
@@ -73,12 +72,12 @@ def point_jacobian(intr: Intrinsics, pts: jnp.ndarray, grad: jnp.ndarray) -> jnp
 
 
 def residual_jacobian_autodiff(
-    field: jnp.ndarray, intr: Intrinsics, T_c_k: jaxlie.SE3, pts_k: jnp.ndarray
+    field: jnp.ndarray, intr: Intrinsics, T_c_k: Pose, pts_k: jnp.ndarray
 ) -> jnp.ndarray:
     """The same Jacobian (6, K) by forward-mode autodiff of r(exp(xi) T) at xi = 0."""
 
     def r_of(xi: jnp.ndarray) -> jnp.ndarray:
-        return residual(field, intr, retract_left(T_c_k, xi), pts_k)[0]
+        return residual(field, intr, T_c_k.retract(xi), pts_k)[0]
 
     return jax.jacfwd(r_of)(jnp.zeros(6, pts_k.dtype)).T
 

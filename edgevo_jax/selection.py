@@ -31,12 +31,12 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import jaxlie
 import numpy as np
 
 from .camera import Intrinsics, unproject
 from .config import Config
 from .determinism import full_precision
+from .geometry import Pose
 from .hostmem import to_host
 from .preprocess import Frame
 from .residuals import point_jacobian, warp
@@ -80,7 +80,7 @@ def edge_information(
     """Jacobians J_e (6, N) of the candidates' residuals at the prior motion T_prior (4, 4)
     (H(e) = J_e J_e^T), and their visibility (in front, inside the image) under it."""
     pts_k = unproject(intr, uv, rho)
-    uv_c, pts = warp(intr, jaxlie.SE3.from_matrix(T_prior), pts_k)
+    uv_c, pts = warp(intr, Pose.from_matrix(T_prior, orthonormalise="quaternion"), pts_k)
     visible = (pts[2] > 1e-6) & (uv_c[0] >= 0) & (uv_c[0] <= width - 1) & (uv_c[1] >= 0) \
         & (uv_c[1] <= height - 1)
     return point_jacobian(intr, pts, grad), visible

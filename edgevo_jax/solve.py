@@ -13,13 +13,12 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import jaxlie
 import numpy as np
 
 from .camera import Intrinsics, unproject
 from .config import Config
 from .derive import SolveKnobs, SolveStructure, solve_knobs
-from .geometry import Rigid, rotation_translation
+from .geometry import Pose
 from .interp import EdgeMap
 from .residuals import consistency_dots_at_level, residual_jacobian_grad, warp
 from .robust import edge_weights, huber_cost, huber_weights
@@ -98,7 +97,7 @@ class TrackResult(NamedTuple):
 
 
 def normal_equations(
-    T: Rigid | jaxlie.SE3,
+    T: Pose,
     pts_k: jnp.ndarray,
     kf: KeyframeEdges,
     field: jnp.ndarray,
@@ -219,7 +218,7 @@ def damped_step(system: LevelSystem, lam: jnp.ndarray) -> jnp.ndarray:
 
 
 def pose_try(
-    system_at: Callable[[Rigid], LevelSystem],
+    system_at: Callable[[Pose], LevelSystem],
     state: LMState,
     accept: Callable[[LevelSystem, LevelSystem], jnp.ndarray] = lower_cost,
 ) -> LMState:
@@ -236,7 +235,7 @@ def pose_try(
     return state
 
 
-def pose_start(T: Rigid, system: LevelSystem) -> LMState:
+def pose_start(T: Pose, system: LevelSystem) -> LMState:
     """The pose solve's state before the first try from pose T with its system."""
     return DAMPING.init(T, system, system.sums.dtype)
 
@@ -249,7 +248,7 @@ def pose_continues(state: LMState, knobs: SolveKnobs) -> jnp.ndarray:
 
 
 def align_level(
-    T: Rigid,
+    T: Pose,
     pts_k: jnp.ndarray,
     kf: KeyframeEdges,
     field: jnp.ndarray,
@@ -257,7 +256,7 @@ def align_level(
     intr: Intrinsics,
     level: int,
     knobs: SolveKnobs,
-) -> tuple[Rigid, LevelSystem]:
+) -> tuple[Pose, LevelSystem]:
     """Levenberg-Marquardt on the Huber-weighted (Gauss-Newton) normal equations at one level;
     returns the pose and the normal equations at it.
 
@@ -307,14 +306,14 @@ def track(
     """
     knobs = solve_knobs(config) if knobs is None else knobs
     pts_k = unproject(intr, kf.uv, kf.rho)
-    T = Rigid.from_matrix(jnp.asarray(T_init, pts_k.dtype))
+    T = Pose.from_matrix(jnp.asarray(T_init, pts_k.dtype))
     for level in reversed(range(config.num_levels)):
         T, final = align_level(T, pts_k, kf, dist[level], edge_map, intr, level, knobs)
     return track_result(T, final, pts_k, kf, dist[0].shape, intr)
 
 
 def track_result(
-    T: Rigid,
+    T: Pose,
     final: LevelSystem,
     pts_k: jnp.ndarray,
     kf: KeyframeEdges,
@@ -332,8 +331,7 @@ def track_result(
         kf.valid & (pts_c[2] > 1e-6) & (uv_c[0] >= 0) & (uv_c[0] <= w - 1)
         & (uv_c[1] >= 0) & (uv_c[1] <= h - 1)
     )
-    R, t = rotation_translation(T)
-    uv_t, _ = warp(intr, Rigid(jnp.eye(3, dtype=R.dtype), t), pts_k)
+    uv_t, _ = warp(intr, Pose(jnp.eye(3, dtype=T.t.dtype), T.t), pts_k)
     inliers = final.inliers
     return TrackResult(
         T_c_k=T.as_matrix(),

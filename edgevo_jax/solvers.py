@@ -34,7 +34,7 @@ import jax.numpy as jnp
 class LMState(NamedTuple):
     """The state of a Levenberg-Marquardt loop (a pytree).
 
-    x: the current point (any pytree: a ``geometry.Rigid`` pose, a tuple of arrays);
+    x: the current point (any pytree: a ``geometry.Pose``, a tuple of arrays);
     system: what the caller evaluated at x (normal equations, cost; any pytree);
     lam: the damping () to use on the next try; step: the norm () of the last step tried
     (inf before the first); rejects: how many tries in a row were rejected () int32.

@@ -19,7 +19,7 @@ from .chunk import track_next_jit
 from .config import Config
 from .derive import solve_knobs, solve_structure
 from .determinism import full_precision
-from .geometry import inverse_np, orthonormalise_np, scale_motion_np
+from .geometry import inverse_np, orthonormalise_np, predict_np, scale_motion_np
 from .hostmem import aligned_array, to_host
 from .keyframes import keyframe_reason
 from .local_map import LocalMap
@@ -147,7 +147,7 @@ class Odometry:
             self._reobs_a = float(np.asarray(params.reobs_a, np.float64))
         self._constants_key: tuple[float, ...] | None = None  # see _device_constants
         # the last two poses relative to the keyframe, A = T_(i-1)_kf and B = T_(i-2)_kf
-        # (float32): the device predicts the next one from them (chunk.predict)
+        # (float32): the device predicts the next one from them (chunk.predict_matrix)
         self._rel: tuple[np.ndarray, np.ndarray] | None = None
 
     # -- public -------------------------------------------------------------------------
@@ -376,11 +376,11 @@ class Odometry:
         return self._constants
 
     def _predict(self) -> np.ndarray:
-        """Constant velocity: T_w_pred = T_w_last (T_w_prev^-1 T_w_last)."""
+        """Constant velocity: T_w_pred = T_w_last (T_w_prev^-1 T_w_last) (``predict_np``)."""
         if len(self._poses) < 2:
             return self._poses[-1]
         prev, last = self._poses
-        return last @ (inverse_np(prev) @ last)
+        return predict_np(last, prev)
 
     def _relative_from_world(self) -> tuple[np.ndarray, np.ndarray]:
         """A, B (float32) from the last two world poses and the keyframe's (float64)."""

@@ -69,10 +69,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from edgevo_jax import Config, enable_batch_exact
-from edgevo_jax.chunk import rigid_inverse
 from edgevo_jax.datasets import groundtruth_pose_at, load_sequence, subsequence
 from edgevo_jax.datasets.tum import SHARED_TUM
-from edgevo_jax.geometry import inverse_np
+from edgevo_jax.geometry import Pose, inverse_np
 from edgevo_jax.interp import stack_edge_maps
 from edgevo_jax.io import json_safe, poses7_to_matrices
 from edgevo_jax.learn import (
@@ -198,7 +197,8 @@ def make_functions(data: dict, intr, config: Config, rot_weight: float, loss_kin
         kf, mag, dist, ng = gather(arrays, ki, fi)
         T = track_window(kf, dist, ng, eye, eye, intr, params, config, mag=mag,
                          adjoint="unrolled").T_c_k
-        return jnp.concatenate([eye[None], jax.vmap(rigid_inverse)(T)])
+        inv = Pose.from_matrix(T, orthonormalise=None).inverse().as_matrix()
+        return jnp.concatenate([eye[None], inv])
 
     pairs = jax.vmap(pair, in_axes=(None, None, 0, 0))
     windows = jax.vmap(window, in_axes=(None, None, 0, 0))

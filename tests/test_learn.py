@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from edgevo_jax import Config
-from edgevo_jax.chunk import predict
+from edgevo_jax.chunk import predict_matrix
 from edgevo_jax.cli import BUNDLED_CLIP
 from edgevo_jax.datasets import groundtruth_pose_at, load_sequence
 from edgevo_jax.geometry import inverse_np
@@ -364,7 +364,7 @@ def test_track_window_is_the_frame_by_frame_loop(clip):
     a, b = eye, eye
     for j in range(len(ks)):
         one = _diff(kf, tuple(d[j] for d in dist), jax.tree.map(lambda x, j=j: x[j], em),
-                    predict(a, b), seq.intrinsics, params, CONFIG, consistency="hard")
+                    predict_matrix(a, b), seq.intrinsics, params, CONFIG, consistency="hard")
         np.testing.assert_allclose(out.T_c_k[j], one.T_c_k, atol=1e-6)
         a, b = one.T_c_k, a
 
