@@ -44,17 +44,16 @@ from .determinism import full_precision
 from .geometry import Pose, inverse_np, orthonormalise_np
 from .hostmem import to_host
 from .interp import EdgeMap
-from .mapping import (
+from .mapping import WindowProblem, remove_keyframe
+from .preprocess import Frame
+from .prior import (
     Prior,
-    WindowProblem,
     append_keyframe_to_prior,
     marginalize_edges,
     marginalize_keyframe,
     no_prior,
-    refine,
-    remove_keyframe,
 )
-from .preprocess import Frame
+from .refine import refine
 from .solve import KeyframeEdges
 
 

@@ -35,7 +35,6 @@ restoration then only keeps the window's scale where it was.
 
 from __future__ import annotations
 
-import dataclasses
 from typing import NamedTuple
 
 import jax
@@ -45,12 +44,9 @@ import numpy as np
 from .camera import Intrinsics, project, unproject
 from .config import Config
 from .derive import MappingConfig, window_config
-from .geometry import Pose
 from .interp import EdgeMap, bilinear, bilinear_with_grad
 from .residuals import consistency_dots_known
 from .robust import huber_cost, huber_weights
-from .schur import eliminate_diagonal, marginalize, schur_solve
-from .solvers import WINDOW_DAMPING
 
 
 class WindowProblem(NamedTuple):
@@ -85,23 +81,6 @@ class WindowProblem(NamedTuple):
         """The intrinsics as a camera.Intrinsics of scalars."""
         c = self.intrinsics
         return Intrinsics(c[0], c[1], c[2], c[3])
-
-
-class Prior(NamedTuple):
-    """Gaussian prior 0.5 dx^T H dx + b^T dx on the camera vector of a window (m = 6 n + 4).
-
-    dx is the tangent-space offset of the current estimate from the linearisation point:
-    dx_k = log(T_w_k T0_w_k^-1) (left, world frame) for each pose, dx_c = c - c0 for the
-    intrinsics. H (m, m) and b (m,) come from marginalisation; poses (n, 4, 4) and
-    intrinsics (4,) are the linearisation point; mask (m,) bool: the variables it constrains
-    (H and b are zero elsewhere).
-    """
-
-    H: jnp.ndarray
-    b: jnp.ndarray
-    poses: jnp.ndarray
-    intrinsics: jnp.ndarray
-    mask: jnp.ndarray
 
 
 class NormalEquations(NamedTuple):
@@ -146,7 +125,7 @@ def pair_hosts(n: int) -> np.ndarray:
     )
 
 
-def _as_mapping_config(config: MappingConfig | Config) -> MappingConfig:
+def as_mapping_config(config: MappingConfig | Config) -> MappingConfig:
     """A MappingConfig as it is; a run's Config through ``derive.window_config`` (the numbers
     the tracker's local map refines with)."""
     return config if isinstance(config, MappingConfig) else window_config(config)
@@ -241,7 +220,7 @@ def _edge_codes(edge_map: EdgeMap | tuple[EdgeMap, ...], j: int) -> jnp.ndarray:
     return edge_map.code[j] if isinstance(edge_map, EdgeMap) else edge_map[j].code
 
 
-def _robust_cost(e: EdgeResiduals, considered: jnp.ndarray, mask: jnp.ndarray,
+def robust_cost(e: EdgeResiduals, considered: jnp.ndarray, mask: jnp.ndarray,
                  cfg: MappingConfig) -> jnp.ndarray:
     """Huber cost of the residuals in ``mask`` (still in view), the gate's Huber cost for
     every other considered one (so that rejecting a residual never lowers the cost; for a
@@ -252,7 +231,7 @@ def _robust_cost(e: EdgeResiduals, considered: jnp.ndarray, mask: jnp.ndarray,
                              jnp.where(considered, gate_cost, 0.0)))
 
 
-def _blocks(e: EdgeResiduals, considered: jnp.ndarray, mask: jnp.ndarray,
+def normal_blocks(e: EdgeResiduals, considered: jnp.ndarray, mask: jnp.ndarray,
             cfg: MappingConfig) -> NormalEquations:
     """The normal-equation blocks of the residuals in ``mask`` (see ``normal_equations``)."""
     n, _, A = e.r.shape
@@ -282,11 +261,11 @@ def _blocks(e: EdgeResiduals, considered: jnp.ndarray, mask: jnp.ndarray,
     H_cp = jnp.concatenate([Hxp, Hcp])
     h_pp = jnp.einsum("jsh,jsa->ha", S, wJr * J_rho).reshape(-1)
     b_p = jnp.einsum("jsh,jsa->ha", S, wJr * r).reshape(-1)
-    cost = _robust_cost(e, considered, mask, cfg)
+    cost = robust_cost(e, considered, mask, cfg)
     return NormalEquations(H_cc, H_cp, h_pp, b_c, b_p, cost, jnp.sum(mask), mask)
 
 
-def _depth_prior(problem: WindowProblem, cfg: MappingConfig,
+def depth_prior_terms(problem: WindowProblem, cfg: MappingConfig,
                  hosts: jnp.ndarray | None = None):
     """(h_pp, b_p, cost) of the measured-depth prior 0.5 sum ((rho - rho_prior) / sigma)^2 over
     the valid edges (of ``hosts`` only, when given), or None without one."""
@@ -298,9 +277,10 @@ def _depth_prior(problem: WindowProblem, cfg: MappingConfig,
     return (w.reshape(-1), (w * d).reshape(-1), 0.5 * jnp.sum(w * d * d))
 
 
-def _with_depth_prior(ne: NormalEquations, problem: WindowProblem, cfg: MappingConfig,
+def with_depth_prior(ne: NormalEquations, problem: WindowProblem, cfg: MappingConfig,
                       hosts: jnp.ndarray | None = None) -> NormalEquations:
-    terms = _depth_prior(problem, cfg, hosts)
+    """``ne`` with the measured-depth prior's terms (``depth_prior_terms``) added."""
+    terms = depth_prior_terms(problem, cfg, hosts)
     if terms is None:
         return ne
     h, b, cost = terms
@@ -312,7 +292,9 @@ def _considered(e: EdgeResiduals, hosts: jnp.ndarray | None) -> jnp.ndarray:
     return e.considered if hosts is None else e.considered & hosts[pair_hosts(n)][:, :, None]
 
 
-def _inliers(e: EdgeResiduals, considered: jnp.ndarray, cfg: MappingConfig) -> jnp.ndarray:
+def inlier_mask(e: EdgeResiduals, considered: jnp.ndarray, cfg: MappingConfig) -> jnp.ndarray:
+    """The inliers among the ``considered`` residuals: in view, gradient-consistent and
+    under the gate (n, n-1, A)."""
     return considered & e.ok & e.consistent & (e.r <= cfg.max_residual)
 
 
@@ -330,206 +312,11 @@ def normal_equations(
     Fixed shapes; the per-pair sums go into the blocks through static incidence tables (no
     scatter); the dense full Hessian is never formed.
     """
-    cfg = _as_mapping_config(config)
+    cfg = as_mapping_config(config)
     e = edge_residuals(problem, cfg.eta)
     considered = _considered(e, hosts)
-    inl = _inliers(e, considered, cfg) if mask is None else mask & considered & e.ok
-    return _with_depth_prior(_blocks(e, considered, inl, cfg), problem, cfg, hosts)
-
-
-def _tangent_offset(poses: jnp.ndarray, intrinsics: jnp.ndarray, prior: Prior) -> jnp.ndarray:
-    """dx (m,) of the estimate from the prior's linearisation point, zero off its mask."""
-    T = Pose.from_matrix(poses, orthonormalise=None)
-    T0 = Pose.from_matrix(prior.poses, orthonormalise=None)
-    dx = jnp.concatenate([T.log_relative(T0).reshape(-1), intrinsics - prior.intrinsics])
-    return jnp.where(prior.mask, dx, 0.0)
-
-
-def prior_terms(
-    poses: jnp.ndarray, intrinsics: jnp.ndarray, prior: Prior
-) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
-    """The prior's (H, gradient H dx + b, cost 0.5 dx^T H dx + b^T dx) at the estimate.
-
-    First-estimate Jacobians: H is the one from marginalisation (never relinearised) and
-    d dx / d xi is taken as the identity (dx stays small inside the window)."""
-    dx = _tangent_offset(poses, intrinsics, prior)
-    Hdx = prior.H @ dx
-    return prior.H, Hdx + prior.b, 0.5 * dx @ Hdx + prior.b @ dx
-
-
-def no_prior(problem: WindowProblem) -> Prior:
-    """The zero prior of the window's layout (constrains nothing)."""
-    m = 6 * problem.poses.shape[0] + 4
-    dtype = problem.rho.dtype
-    return Prior(H=jnp.zeros((m, m), dtype), b=jnp.zeros(m, dtype), poses=problem.poses,
-                 intrinsics=problem.intrinsics, mask=jnp.zeros(m, bool))
-
-
-def append_keyframe_to_prior(prior: Prior, T_w_new: jnp.ndarray) -> Prior:
-    """The prior in the layout of a window with one more keyframe, appended last (pose
-    T_w_new (4, 4)): zero rows and columns for its pose, which it does not constrain."""
-    m = prior.H.shape[0]
-    at = m - 4  # the new pose goes between the poses and the intrinsics
-    idx = np.concatenate([np.arange(at), np.arange(at + 6, m + 6)])
-    H = jnp.zeros((m + 6, m + 6), prior.H.dtype).at[np.ix_(idx, idx)].set(prior.H)
-    b = jnp.zeros(m + 6, prior.b.dtype).at[idx].set(prior.b)
-    mask = jnp.zeros(m + 6, bool).at[idx].set(prior.mask)
-    poses = jnp.concatenate([prior.poses, jnp.asarray(T_w_new, prior.poses.dtype)[None]])
-    return Prior(H=H, b=b, poses=poses, intrinsics=prior.intrinsics, mask=mask)
-
-
-def _with_prior(ne: NormalEquations, problem: WindowProblem, prior: Prior | None):
-    if prior is None:
-        return ne
-    H, g, cost = prior_terms(problem.poses, problem.intrinsics, prior)
-    return ne._replace(H_cc=ne.H_cc + H, b_c=ne.b_c + g, cost=ne.cost + cost)
-
-
-def _restore_scale(problem: WindowProblem, log_rho_sum: jnp.ndarray,
-                   gauge_index: int) -> WindowProblem:
-    """Move along the exact scale orbit (translations about keyframe gauge_index's centre
-    times e^-a, inverse depths times e^a: every residual unchanged) so that the sum of the
-    active edges' log inverse depths is log_rho_sum again."""
-    valid = problem.valid
-    logs = jnp.where(valid, jnp.log(jnp.where(valid, problem.rho, 1.0)), 0.0)
-    a = (log_rho_sum - jnp.sum(logs)) / jnp.maximum(jnp.sum(valid), 1)
-    t = problem.poses[:, :3, 3]
-    t = t[gauge_index] + (t - t[gauge_index]) * jnp.exp(-a)
-    return problem._replace(poses=problem.poses.at[:, :3, 3].set(t),
-                            rho=jnp.where(valid, problem.rho * jnp.exp(a), problem.rho))
-
-
-def _apply(problem: WindowProblem, delta_c: jnp.ndarray, delta_p: jnp.ndarray,
-           min_rho: float) -> WindowProblem:
-    n, _, A = problem.uv.shape
-    # exp(xi) T as a 4x4 product
-    T = (Pose.exp(delta_c[: 6 * n].reshape(n, 6), method="quaternion")
-         @ Pose.from_matrix(problem.poses, orthonormalise=None)).as_matrix()
-    rho = jnp.where(problem.valid,
-                    jnp.maximum(problem.rho + delta_p.reshape(n, A), min_rho), problem.rho)
-    return problem._replace(poses=T, rho=rho,
-                            intrinsics=problem.intrinsics + delta_c[6 * n:])
-
-
-class _Judged(NamedTuple):
-    """The window's LM system: the normal equations at a point (with its own inlier set) and
-    the energy of that point judged with the inlier set of the point the try started from
-    (what ``refine`` compares against the start's own energy)."""
-
-    ne: NormalEquations
-    fixed_set_cost: jnp.ndarray
-
-
-def refine(
-    problem: WindowProblem, config: MappingConfig | Config, prior: Prior | None = None,
-    iterations: int | None = None,
-) -> tuple[WindowProblem, dict[str, jnp.ndarray]]:
-    """Levenberg-Marquardt on the window's robust energy (plus ``prior``, if any).
-
-    Each iteration: the IRLS normal equations (``normal_equations``), the prior's terms
-    (first-estimate Jacobians: its H is kept from when it was made, its gradient is
-    H dx + b at the current offset dx, see ``prior_terms``), the pose of ``gauge_index``
-    held fixed (its rows and columns replaced by the identity), the Schur-complement solve
-    with lam diag(H) damping, the scale restored (``fix_scale``, module doc), and the step
-    kept only if it lowers the energy judged with the inlier set of the point it starts from
-    (gating and the gradient test are steps in the cost: with the set re-decided inside the
-    comparison, LM stalls against them), then lam x 0.1 and a new inlier set, else lam x 10
-    (``solvers.WINDOW_DAMPING``: lam from ``lambda_init``, within [1e-7, 1e4]).
-    The first ``warmup_iterations`` tries move the poses alone (depths and intrinsics
-    frozen: the poses, fitted by all edges at once, converge from further away than one
-    edge's depth can, and the weakly observable intrinsics would absorb the depths' errors),
-    then ``iterations`` (argument, else the config's) joint ones, lam reset to
-    ``lambda_init`` for the first of them. One lax.while_loop that
-    evaluates the residuals once per try; jit with ``config`` and ``iterations`` static
-    (None stands for ``no_prior(problem)``; pass that explicitly to share one compiled
-    program between calls with and without a prior).
-    Returns the refined problem (poses, rho, intrinsics) and stats: cost_before, cost_after
-    (robust energy with its own inlier set), inliers (count), iterations (tries).
-    """
-    cfg = _as_mapping_config(config)
-    prior = no_prior(problem) if prior is None else prior
-    iters = cfg.iterations if iterations is None else iterations
-    warm = cfg.warmup_iterations
-    n = problem.poses.shape[0]
-    m = 6 * n + 4
-    gauge = np.zeros(m, bool)
-    gauge[6 * cfg.gauge_index: 6 * cfg.gauge_index + 6] = True
-    pose_only = gauge.copy()
-    pose_only[6 * n:] = True
-    joint = gauge.copy()
-    joint[6 * n:] = not cfg.refine_intrinsics
-
-    def system(p: WindowProblem, prev_mask: jnp.ndarray):
-        """Blocks at p (own inliers, prior added) and the energy with prev_mask's inliers."""
-        e = edge_residuals(p, cfg.eta)
-        ne = _with_depth_prior(_blocks(e, e.considered, _inliers(e, e.considered, cfg), cfg),
-                               p, cfg)
-        terms = _depth_prior(p, cfg)
-        fixed_cost = _robust_cost(e, e.considered, prev_mask, cfg) + (
-            0.0 if terms is None else terms[2])
-        ne_p = _with_prior(ne, p, prior)
-        return ne_p, fixed_cost + (ne_p.cost - ne.cost)
-
-    def step(p: WindowProblem, ne: NormalEquations, lam: jnp.ndarray, joint_stage: jnp.ndarray):
-        fixed = jnp.where(joint_stage, jnp.asarray(joint), jnp.asarray(pose_only))
-        depths = joint_stage & cfg.refine_depths
-        free = ~fixed
-        H_cc = jnp.where(free[:, None] & free[None, :], ne.H_cc, 0.0) + jnp.diag(
-            fixed.astype(ne.H_cc.dtype))
-        H_cp = jnp.where(free[:, None] & depths, ne.H_cp, 0.0)
-        h_pp = jnp.where(depths, ne.h_pp, 0.0)  # zero depth rows: schur_solve gives delta 0
-        dc, dp = schur_solve(H_cc, H_cp, h_pp, jnp.where(free, ne.b_c, 0.0), ne.b_p, lam)
-        ok = jnp.all(jnp.isfinite(dc)) & jnp.all(jnp.isfinite(dp))
-        return jnp.where(ok, dc, 0.0), jnp.where(ok, dp, 0.0)
-
-    def at(x) -> WindowProblem:
-        return problem._replace(poses=x[0], rho=x[1], intrinsics=x[2])
-
-    lm = dataclasses.replace(WINDOW_DAMPING, lam_init=cfg.lambda_init)
-
-    def cond(carry):
-        i, state, _ = carry
-        return (i <= warm + iters) & (lm.continues(state, cfg.step_tol) | (i <= warm))
-
-    def body(carry):
-        # try i = 0 evaluates the start; tries 1..warm move the poses alone
-        i, state, cost0 = carry
-        state = state._replace(lam=jnp.where(i == warm + 1, cfg.lambda_init, state.lam))
-
-        def solve(x, judged: _Judged, lam):
-            dc, dp = step(at(x), judged.ne, lam, i > warm)
-            return jnp.where(i == 0, 0.0, dc), jnp.where(i == 0, 0.0, dp)
-
-        def apply(x, delta):
-            p_new = _apply(at(x), delta[0], delta[1], cfg.min_rho)
-            if cfg.fix_scale:
-                p_new = _restore_scale(p_new, log_rho_sum, cfg.gauge_index)
-            return (p_new.poses, p_new.rho, p_new.intrinsics)
-
-        state, new = lm.step(
-            state, solve=solve, apply=apply,
-            evaluate=lambda x, judged: _Judged(*system(at(x), judged.ne.mask)),
-            accept=lambda old, new: new.fixed_set_cost < old.ne.cost,
-            norm=lambda d: jnp.sqrt(d[0] @ d[0] + d[1] @ d[1]))
-        # a converged warm-up must not end the loop before the joint tries
-        state = state._replace(step=jnp.where((i == 0) | (i == warm), jnp.inf, state.step))
-        return i + 1, state, jnp.where(i == 0, new.ne.cost, cost0)
-
-    dtype = problem.rho.dtype
-    log_rho_sum = jnp.sum(jnp.where(problem.valid,
-                                    jnp.log(jnp.where(problem.valid, problem.rho, 1.0)), 0.0))
-    n_, _, A_ = problem.uv.shape
-    shapes = jax.eval_shape(system, problem, jnp.zeros((n_, n_ - 1, A_), bool))[0]
-    ne0 = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
-    ne0 = ne0._replace(cost=jnp.asarray(jnp.inf, shapes.cost.dtype))
-    x0 = (problem.poses, problem.rho, problem.intrinsics)
-    init = (jnp.asarray(0), lm.init(x0, _Judged(ne0, ne0.cost), dtype), ne0.cost)
-    i, state, cost0 = jax.lax.while_loop(cond, body, init)
-    x, ne = state.x, state.system.ne
-    out = problem._replace(poses=x[0], rho=x[1], intrinsics=x[2])
-    stats = {"cost_before": cost0, "cost_after": ne.cost, "inliers": ne.count,
-             "iterations": i - 1}
-    return out, stats
+    inl = inlier_mask(e, considered, cfg) if mask is None else mask & considered & e.ok
+    return with_depth_prior(normal_blocks(e, considered, inl, cfg), problem, cfg, hosts)
 
 
 def remove_keyframe(problem: WindowProblem, index: int) -> WindowProblem:
@@ -562,55 +349,3 @@ def _per_keyframe(a) -> bool:
     return isinstance(a, tuple | list) and not isinstance(a, EdgeMap)
 
 
-def marginalize_keyframe(
-    problem: WindowProblem, drop_index: int, config: MappingConfig | Config,
-    prior: Prior | None = None,
-) -> Prior:
-    """Prior on the remaining poses and the intrinsics left by marginalising keyframe
-    ``drop_index``'s pose and the inverse depths of the edges it hosts.
-
-    The dense linear system (camera vector plus the dropped keyframe's A depths) is built at
-    the current estimate from the residuals of the dropped keyframe's edges in every other
-    keyframe, plus the previous ``prior`` (H kept, gradient H dx + b); the residuals of other
-    keyframes' edges seen in the dropped keyframe are discarded, as in DSO (marginalising them
-    would couple the remaining depths into the prior). Then ``marginalize`` (Schur complement,
-    Jacobi-scaled pseudo-inverse of the pose block, after the depths' diagonal block).
-    Linearised once, here: the returned prior's H is the first-estimate one. The result is
-    in the layout of ``remove_keyframe(problem, drop_index)`` (its linearisation point: the
-    current remaining poses and intrinsics).
-    Cost: the normal equations plus O(m^2 A) for the depths and a 6 x 6 pseudo-inverse.
-    """
-    n, _, A = problem.uv.shape
-    m = 6 * n + 4
-    hosts = jnp.arange(n) == drop_index
-    ne = _with_prior(normal_equations(problem, config, hosts=hosts), problem, prior)
-    cols = slice(drop_index * A, (drop_index + 1) * A)
-    Hcp, h_pp = ne.H_cp[:, cols], ne.h_pp[cols]
-    # the depths first (diagonal block: 1 / h, zero for unobserved slots), then the pose's
-    # 6 x 6 block: the same Schur complement as eliminating both at once, without the
-    # (6 + A)^2 pseudo-inverse (whose eigh took up to a second on some windows)
-    e = eliminate_diagonal(ne.H_cc, Hcp, h_pp, ne.b_c, ne.b_p[cols])
-    pose = np.arange(6 * drop_index, 6 * drop_index + 6)
-    keep = np.setdiff1d(np.arange(m), pose)
-    Hm, bm = marginalize(e.S, e.r, keep, pose)
-    rest = remove_keyframe(problem, drop_index)
-    return Prior(H=Hm, b=bm, poses=rest.poses, intrinsics=rest.intrinsics,
-                 mask=jnp.ones(m - 6, bool))
-
-
-def marginalize_edges(
-    problem: WindowProblem, edges: jnp.ndarray, config: MappingConfig, prior: Prior
-) -> Prior:
-    """Prior left by marginalising the inverse depths of ``edges`` (n, A) bool (their
-    residuals in every keyframe of the window), added to ``prior`` (whose H is kept, its
-    gradient taken at the current estimate: first-estimate Jacobians). The depth block is
-    diagonal, so the Schur complement (``schur.eliminate_diagonal``) needs no inverse but
-    1 / h_pp. Linearisation point: the
-    current poses and intrinsics."""
-    n = problem.poses.shape[0]
-    inl = normal_equations(problem, config).mask
-    ne = normal_equations(problem, config, mask=inl & edges[pair_hosts(n)])
-    H_p, g_p, _ = prior_terms(problem.poses, problem.intrinsics, prior)
-    e = eliminate_diagonal(H_p + ne.H_cc, ne.H_cp, ne.h_pp, g_p + ne.b_c, ne.b_p)
-    return Prior(H=e.S, b=e.r, poses=problem.poses, intrinsics=problem.intrinsics,
-                 mask=jnp.ones_like(prior.mask))

@@ -21,18 +21,20 @@ from edgevo_jax.interp import stack_edge_maps
 from edgevo_jax.local_map import LocalMap, _refine_jit
 from edgevo_jax.mapping import (
     WindowProblem,
-    append_keyframe_to_prior,
     edge_residual,
     edge_residuals,
-    marginalize_edges,
-    marginalize_keyframe,
-    no_prior,
     normal_equations,
     pair_hosts,
-    refine,
     remove_keyframe,
 )
 from edgevo_jax.preprocess import frame_from_edges, preprocess
+from edgevo_jax.prior import (
+    append_keyframe_to_prior,
+    marginalize_edges,
+    marginalize_keyframe,
+    no_prior,
+)
+from edgevo_jax.refine import refine
 from edgevo_jax.schur import eliminate_diagonal, marginalize, schur_solve
 
 refine_jit = jax.jit(refine, static_argnames=("config", "iterations"))
