@@ -1,13 +1,30 @@
 """edgevo_jax: edge-based RGB-D visual odometry (EdgeVO) in JAX.
 
-Importing the package changes no process-wide setting: see ``enable_batch_exact`` for
-batch-size-exact CPU arithmetic (the ``edgevo`` CLI turns it on).
+The public API: ``Config`` and ``Intrinsics`` (what a run needs), ``Odometry`` (the
+streaming tracker; ``FrameResult`` per frame), ``run`` (a whole sequence, with its
+trajectory file) and ``evaluate`` (many sequences under many configurations, batched),
+``load_sequence`` (TUM-style folders), ``summarise`` (a run's statistics and ATE / RPE),
+``Pose`` (the SE(3) pose type of device code) and ``enable_batch_exact``. Importing the
+package changes no process-wide setting: ``enable_batch_exact`` turns on batch-size-exact
+CPU arithmetic (the ``edgevo`` CLI does).
+
+Layout: ``image`` (preprocessing, interpolation), ``frontend`` (residual, alignment,
+selection, keyframes), ``backend`` (the window, Schur complement, marginalisation),
+``learn`` (Params, differentiable tracking, losses), ``pipeline`` (Odometry, runs, batches),
+with ``geometry``, ``camera``, ``config`` / ``derive``, ``solvers``, ``metrics``, ``io``,
+``datasets``, ``viz`` and ``cli`` beside them.
 """
 
 from .camera import Intrinsics
 from .config import Config
+from .datasets.tum import load_sequence
 from .determinism import enable_batch_exact
-from .tracker import FrameResult, Odometry
+from .geometry import Pose
+from .pipeline.batch import evaluate
+from .pipeline.odometry import FrameResult, Odometry
+from .pipeline.run import run_sequence as run
+from .pipeline.run import summarise
 
-__all__ = ["Config", "FrameResult", "Intrinsics", "Odometry", "enable_batch_exact"]
+__all__ = ["Config", "FrameResult", "Intrinsics", "Odometry", "Pose", "enable_batch_exact",
+           "evaluate", "load_sequence", "run", "summarise"]
 __version__ = "0.1.0"

@@ -136,7 +136,7 @@ def _run(args: argparse.Namespace) -> int:
     from .camera import Intrinsics
     from .config import Config
     from .datasets.tum import load_sequence
-    from .runner import enable_compilation_cache, run_sequence, summarise
+    from .pipeline.run import enable_compilation_cache, run_sequence, summarise
 
     config = Config().with_overrides(args.overrides)
     params = _read_params(args.params, config) if args.params is not None else None
@@ -165,7 +165,7 @@ def _run(args: argparse.Namespace) -> int:
 def _read_params(path: Path, config):
     """Params from a JSON file: Params fields at the top level, or under "fitted_params"
     (``scripts/learn_weights.py``'s log)."""
-    from .params import params_from_dict
+    from .learn.params import params_from_dict
 
     try:
         values = json.loads(path.read_text())
@@ -183,10 +183,10 @@ def _read_params(path: Path, config):
 
 
 def _batch(args: argparse.Namespace) -> int:
-    from . import batch
     from .datasets.tum import load_sequence
     from .io import matrices_to_poses7, write_trajectory
-    from .runner import enable_compilation_cache, summarise
+    from .pipeline import batch
+    from .pipeline.run import enable_compilation_cache, summarise
 
     configs = batch.load_configs(args.configs)
     enable_compilation_cache()
@@ -302,7 +302,7 @@ def _load_frame(args: argparse.Namespace):
     """(sequence, config, rgb, depth, frame) of ``args.index`` of ``args.sequence``."""
     from .config import Config
     from .datasets.tum import load_sequence
-    from .preprocess import preprocess
+    from .image.preprocess import preprocess
 
     config = Config().with_overrides(args.overrides)
     seq = load_sequence(args.sequence if args.sequence is not None else BUNDLED_CLIP)
@@ -314,7 +314,7 @@ def _load_frame(args: argparse.Namespace):
 
 
 def _plot_frame(args: argparse.Namespace) -> Path:
-    from .preprocess import to_gray
+    from .image.preprocess import to_gray
     from .viz import plot_frame
 
     seq, config, rgb, _, frame = _load_frame(args)
@@ -327,8 +327,8 @@ def _plot_selection(args: argparse.Namespace) -> Path:
     import numpy as np
 
     from .config import SELECTIONS
-    from .preprocess import to_gray
-    from .selection import candidates, select
+    from .frontend.selection import candidates, select
+    from .image.preprocess import to_gray
     from .viz import plot_selection_overlay
 
     modes = list(dict.fromkeys(m.strip() for m in args.modes.split(",") if m.strip()))

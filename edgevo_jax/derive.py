@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .config import Config
-from .robust import EdgeWeighting
+from .frontend.robust import EdgeWeighting
 
 
 # --- the tracker ---------------------------------------------------------------------------

@@ -12,8 +12,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from edgevo_jax.geometry import inverse_np, rotation_angle_np
-from edgevo_jax.io import poses7_to_matrices
+from .geometry import inverse_np, rotation_angle_np
+from .io import poses7_to_matrices
 
 __all__ = ["TrajectoryAlignment", "align_trajectory", "associate_timestamps", "ate", "horn_align",
            "rpe"]

@@ -12,7 +12,7 @@ What is run: for each sequence, ``selection=all`` once (every culled edge; deter
 no seeds and no budget), and every stochastic mode (``spg``: stochastic partition greedy,
 ``greedy``: stochastic greedy without partitions, ``random``: a uniform subset) for every
 edge budget (``Config.num_edges``) and every seed (``Config.seed``), each through
-``edgevo_jax.runner.run_sequence`` (the pipelined runner, no progress bar) and ``summarise``.
+``edgevo_jax.pipeline.run.run_sequence`` (the pipelined runner, no progress bar) and ``summarise``.
 All other settings are the ``Config`` defaults. The seed rounds are the outer loop, so a
 drift in machine load spreads over every configuration instead of hitting one.
 
@@ -65,11 +65,11 @@ from edgevo_jax import enable_batch_exact
 from edgevo_jax.config import SELECTIONS, Config
 from edgevo_jax.datasets.tum import SHARED_CLIPS as DEFAULT_CLIPS
 from edgevo_jax.datasets.tum import SHARED_TUM, TumSequence, load_sequence
+from edgevo_jax.frontend.selection import candidates, select
+from edgevo_jax.image.preprocess import preprocess, to_gray
 from edgevo_jax.io import json_safe
-from edgevo_jax.preprocess import preprocess, to_gray
+from edgevo_jax.pipeline.run import enable_compilation_cache, run_sequence, summarise
 from edgevo_jax.provenance import load_average, machine_info
-from edgevo_jax.runner import enable_compilation_cache, run_sequence, summarise
-from edgevo_jax.selection import candidates, select
 from edgevo_jax.viz import plot_ablation, plot_selection_overlay
 
 REPO_ROOT = Path(__file__).resolve().parents[1]

@@ -10,7 +10,7 @@ Methods:
 
 - ``edgevo`` (the default ``Config``), ``edgevo_all`` (``selection=all``), ``edgevo_nomap``
   (``mapping=false``: no local mapping) and any ``--edgevo`` variant, e.g.
-  ``--edgevo "e256=num_edges=256"``: ``edgevo_jax.runner.run_sequence`` (keyframe-based,
+  ``--edgevo "e256=num_edges=256"``: ``edgevo_jax.pipeline.run.run_sequence`` (keyframe-based,
   pipelined: the solve of frame i overlaps the preprocessing of frame i+1).
 - ``cv2_rgb``, ``cv2_depth``, ``cv2_rgbd``: OpenCV 5 ``cv2.Odometry`` with
   ``OdometryType_RGB`` / ``_DEPTH`` / ``_RGB_DEPTH`` (``OdometryAlgoType_COMMON``, default
@@ -346,7 +346,7 @@ def track_peer(peer: PeerTracker, seq: Any, n: int, first_pose: Pose) -> PeerTra
 def run_peer(method: str, seq: Any, max_frames: int | None = None) -> dict[str, Any]:
     """Track ``seq`` frame to frame with the peer ``method`` from edgevo's first pose; the
     result row, or ``{"missing": reason}``."""
-    from edgevo_jax.runner import initial_pose
+    from edgevo_jax.pipeline.run import initial_pose
 
     baseline = _maxrss_mib()
     try:
@@ -385,7 +385,7 @@ def run_edgevo(overrides: Sequence[str], seq: Any, max_frames: int | None = None
                ) -> dict[str, Any]:
     """Track ``seq`` with edgevo_jax (``Config().with_overrides(overrides)``)."""
     from edgevo_jax import Config
-    from edgevo_jax.runner import run_sequence, summarise
+    from edgevo_jax.pipeline.run import run_sequence, summarise
 
     config = Config().with_overrides(list(overrides))
     baseline = _maxrss_mib()

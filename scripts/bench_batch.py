@@ -34,10 +34,11 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from edgevo_jax import Config, batch, enable_batch_exact
+from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets import load_sequence
 from edgevo_jax.io import json_safe
-from edgevo_jax.runner import run_sequence, summarise
+from edgevo_jax.pipeline import batch
+from edgevo_jax.pipeline.run import run_sequence, summarise
 
 DEFAULT_SEQ = (Path(__file__).resolve().parents[2] / "shared" / "data" / "tum"
                / "rgbd_dataset_freiburg3_teddy_first200")

@@ -45,13 +45,12 @@ from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.camera import Intrinsics
 from edgevo_jax.cli import BUNDLED_CLIP
 from edgevo_jax.datasets import groundtruth_pose_at, load_sequence
+from edgevo_jax.frontend.selection import KeyframeEdges, keyframe_edges
 from edgevo_jax.geometry import inverse_np
+from edgevo_jax.image.preprocess import preprocess
 from edgevo_jax.io import json_safe, poses7_to_matrices
 from edgevo_jax.learn import level_system, newton_decrement, pose_loss, track_differentiable
-from edgevo_jax.params import Params, flatten, unflatten
-from edgevo_jax.preprocess import preprocess
-from edgevo_jax.selection import keyframe_edges
-from edgevo_jax.solve import KeyframeEdges
+from edgevo_jax.learn.params import Params, flatten, unflatten
 
 #: parameters that enter level 0 (flattened Params order): the others are the coarse
 #: levels' Huber radii, reobs_a (selection only) and the level feature's weight (0 at level 0)

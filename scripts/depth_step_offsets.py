@@ -24,8 +24,8 @@ import numpy as np
 
 from edgevo_jax import Config
 from edgevo_jax.datasets.tum import SHARED_CLIPS, SHARED_TUM, load_sequence
-from edgevo_jax.preprocess import preprocess
-from edgevo_jax.selection import cull
+from edgevo_jax.frontend.selection import cull
+from edgevo_jax.image.preprocess import preprocess
 
 
 def step_offsets(depth: np.ndarray, uv: np.ndarray, grad: np.ndarray, span: int,

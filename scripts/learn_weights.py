@@ -71,8 +71,10 @@ import numpy as np
 from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets import groundtruth_pose_at, load_sequence, subsequence
 from edgevo_jax.datasets.tum import SHARED_TUM
+from edgevo_jax.frontend.selection import KeyframeEdges, keyframe_edges
 from edgevo_jax.geometry import Pose, inverse_np
-from edgevo_jax.interp import stack_edge_maps
+from edgevo_jax.image.interp import stack_edge_maps
+from edgevo_jax.image.preprocess import preprocess
 from edgevo_jax.io import json_safe, poses7_to_matrices
 from edgevo_jax.learn import (
     edge_magnitudes,
@@ -82,11 +84,8 @@ from edgevo_jax.learn import (
     track_window,
     window_rpe_loss,
 )
-from edgevo_jax.params import Params, params_to_dict
-from edgevo_jax.preprocess import preprocess
-from edgevo_jax.runner import run_sequence, summarise
-from edgevo_jax.selection import keyframe_edges
-from edgevo_jax.solve import KeyframeEdges
+from edgevo_jax.learn.params import Params, params_to_dict
+from edgevo_jax.pipeline.run import run_sequence, summarise
 
 DEFAULT_SEQ = SHARED_TUM / "rgbd_dataset_freiburg3_teddy_first200"
 GT_MAX_DIFF = 0.02  # s

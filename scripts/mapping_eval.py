@@ -34,8 +34,8 @@ from edgevo_jax.datasets.pingpong import pingpong
 from edgevo_jax.datasets.tum import SHARED_TUM, TumSequence, load_sequence
 from edgevo_jax.io import json_safe, matrices_to_poses7
 from edgevo_jax.metrics import associate_timestamps
+from edgevo_jax.pipeline.run import enable_compilation_cache, run_sequence, summarise
 from edgevo_jax.provenance import machine_info
-from edgevo_jax.runner import enable_compilation_cache, run_sequence, summarise
 
 DEFAULT_VARIANTS = ("nomap=mapping=false", "map=")
 

@@ -24,7 +24,7 @@ from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets.tum import SHARED_TUM, EmptyDepthWarning, TumSequence, load_sequence
 from edgevo_jax.io import json_safe, matrices_to_poses7
 from edgevo_jax.metrics import ate
-from edgevo_jax.runner import run_sequence
+from edgevo_jax.pipeline.run import run_sequence
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -76,7 +76,7 @@ MODULES = _modules()
 
 
 def test_walk_finds_the_package() -> None:
-    assert "edgevo_jax.residuals" in MODULES
+    assert "edgevo_jax.frontend.residuals" in MODULES
     assert "edgevo_jax.datasets.tum" in MODULES
     assert not any(m.startswith("edgevo_jax.data.") or m == "edgevo_jax.data" for m in MODULES)
 

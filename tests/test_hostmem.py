@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from edgevo_jax.hostmem import aligned_array, aligned_empty, aligned_stack
-from edgevo_jax.preprocess import distance_pyramid, preprocess
+from edgevo_jax.image.preprocess import distance_pyramid, preprocess
 
 
 @given(shape=st.lists(st.integers(1, 9), min_size=0, max_size=3),

@@ -273,7 +273,7 @@ def test_cli_reports_bad_input_before_tracking(clip, case, monkeypatch, capsys):
     def no_run(*args, **kw):
         raise AssertionError("run_sequence called on a bad input")
 
-    monkeypatch.setattr("edgevo_jax.runner.run_sequence", no_run)
+    monkeypatch.setattr("edgevo_jax.pipeline.run.run_sequence", no_run)
     monkeypatch.setenv("EDGEVO_CACHE_DIR", "")
     assert cli.main(argv) == 2
     err = capsys.readouterr().err
@@ -335,7 +335,7 @@ def test_all_zero_depth_warns_with_its_file_and_does_not_stop(clip):
 def test_all_zero_depth_frames_are_flagged_and_the_run_goes_on(clip, tmp_path):
     """An all-zero first depth cannot start the map and a later one cannot be a keyframe, but
     the run tracks every frame and writes every pose."""
-    from edgevo_jax.runner import run_sequence
+    from edgevo_jax.pipeline.run import run_sequence
 
     paths = [_zero_depth(clip, 0), _zero_depth(clip, 4)]  # frames 0 and 3
     seq = load_sequence(clip)
@@ -370,7 +370,7 @@ def test_missing_ground_truth_runs_without_ate_and_says_so(tmp_path, capsys):
 def test_non_finite_user_pose(tmp_path, capsys):
     """A pose handed in by the user: the initial pose of Odometry, a line of an estimate given
     to ``edgevo eval``, a pose written to a trajectory file."""
-    from edgevo_jax.tracker import Odometry
+    from edgevo_jax.pipeline.odometry import Odometry
 
     pose = np.eye(4)
     pose[1, 3] = np.nan

@@ -156,7 +156,7 @@ def test_plot_trajectory_rejects_bad_input(tmp_path: Path) -> None:
 
 def test_plot_frame_writes_png(tmp_path: Path) -> None:
     from edgevo_jax.config import Config
-    from edgevo_jax.preprocess import preprocess, to_gray
+    from edgevo_jax.image.preprocess import preprocess, to_gray
     from edgevo_jax.viz import plot_frame
 
     rgb = np.full((96, 128, 3), 40, np.uint8)

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from edgevo_jax.datasets.pingpong import pingpong, pingpong_indices
-from edgevo_jax.datasets.tum import (
+from .pingpong import pingpong, pingpong_indices
+from .tum import (
     FREIBURG_CAMERAS,
     FROM_NAME,
     TumSequence,

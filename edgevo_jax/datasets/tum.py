@@ -20,9 +20,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from edgevo_jax.camera import Intrinsics, undistortion_maps
-from edgevo_jax.io import read_trajectory
-from edgevo_jax.metrics import associate_timestamps
+from ..camera import Intrinsics, undistortion_maps
+from ..io import read_trajectory
+from ..metrics import associate_timestamps
 
 __all__ = [
     "FREIBURG_CAMERAS",

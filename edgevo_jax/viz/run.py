@@ -12,7 +12,7 @@ import numpy as np
 from ..metrics import align_trajectory
 
 if TYPE_CHECKING:  # only for annotations: viz sits beside preprocess, not above it
-    from ..preprocess import Frame
+    from ..image.preprocess import Frame
 
 from ._canvas import figure, save
 
@@ -139,7 +139,7 @@ def plot_frame(
     import matplotlib as mpl
     from matplotlib.colors import PowerNorm
 
-    from ..interp import nearest_edge_gradient
+    from ..image.interp import nearest_edge_gradient
 
     levels = len(frame.dist)
     cols = max(3, levels)

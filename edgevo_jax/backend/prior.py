@@ -1,0 +1,143 @@
+"""The window's Gaussian prior on its camera vector (poses and intrinsics): its terms at
+the current estimate (first-estimate Jacobians), its layout as keyframes come and go, and
+marginalisation into it (a keyframe, or stale edges' inverse depths) through the Schur
+complement (``schur``)."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..config import Config
+from ..derive import MappingConfig
+from ..geometry import Pose
+from .schur import eliminate_diagonal, marginalize
+from .window import (
+    NormalEquations,
+    WindowProblem,
+    normal_equations,
+    pair_hosts,
+    remove_keyframe,
+)
+
+
+class Prior(NamedTuple):
+    """Gaussian prior 0.5 dx^T H dx + b^T dx on the camera vector of a window (m = 6 n + 4).
+
+    dx is the tangent-space offset of the current estimate from the linearisation point:
+    dx_k = log(T_w_k T0_w_k^-1) (left, world frame) for each pose, dx_c = c - c0 for the
+    intrinsics. H (m, m) and b (m,) come from marginalisation; poses (n, 4, 4) and
+    intrinsics (4,) are the linearisation point; mask (m,) bool: the variables it constrains
+    (H and b are zero elsewhere).
+    """
+
+    H: jnp.ndarray
+    b: jnp.ndarray
+    poses: jnp.ndarray
+    intrinsics: jnp.ndarray
+    mask: jnp.ndarray
+
+
+def _tangent_offset(poses: jnp.ndarray, intrinsics: jnp.ndarray, prior: Prior) -> jnp.ndarray:
+    """dx (m,) of the estimate from the prior's linearisation point, zero off its mask."""
+    T = Pose.from_matrix(poses, orthonormalise=None)
+    T0 = Pose.from_matrix(prior.poses, orthonormalise=None)
+    dx = jnp.concatenate([T.log_relative(T0).reshape(-1), intrinsics - prior.intrinsics])
+    return jnp.where(prior.mask, dx, 0.0)
+
+
+def prior_terms(
+    poses: jnp.ndarray, intrinsics: jnp.ndarray, prior: Prior
+) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
+    """The prior's (H, gradient H dx + b, cost 0.5 dx^T H dx + b^T dx) at the estimate.
+
+    First-estimate Jacobians: H is the one from marginalisation (never relinearised) and
+    d dx / d xi is taken as the identity (dx stays small inside the window)."""
+    dx = _tangent_offset(poses, intrinsics, prior)
+    Hdx = prior.H @ dx
+    return prior.H, Hdx + prior.b, 0.5 * dx @ Hdx + prior.b @ dx
+
+
+def no_prior(problem: WindowProblem) -> Prior:
+    """The zero prior of the window's layout (constrains nothing)."""
+    m = 6 * problem.poses.shape[0] + 4
+    dtype = problem.rho.dtype
+    return Prior(H=jnp.zeros((m, m), dtype), b=jnp.zeros(m, dtype), poses=problem.poses,
+                 intrinsics=problem.intrinsics, mask=jnp.zeros(m, bool))
+
+
+def append_keyframe_to_prior(prior: Prior, T_w_new: jnp.ndarray) -> Prior:
+    """The prior in the layout of a window with one more keyframe, appended last (pose
+    T_w_new (4, 4)): zero rows and columns for its pose, which it does not constrain."""
+    m = prior.H.shape[0]
+    at = m - 4  # the new pose goes between the poses and the intrinsics
+    idx = np.concatenate([np.arange(at), np.arange(at + 6, m + 6)])
+    H = jnp.zeros((m + 6, m + 6), prior.H.dtype).at[np.ix_(idx, idx)].set(prior.H)
+    b = jnp.zeros(m + 6, prior.b.dtype).at[idx].set(prior.b)
+    mask = jnp.zeros(m + 6, bool).at[idx].set(prior.mask)
+    poses = jnp.concatenate([prior.poses, jnp.asarray(T_w_new, prior.poses.dtype)[None]])
+    return Prior(H=H, b=b, poses=poses, intrinsics=prior.intrinsics, mask=mask)
+
+
+def with_prior(ne: NormalEquations, problem: WindowProblem, prior: Prior | None) -> NormalEquations:
+    """``ne`` with the prior's terms (``prior_terms``) added; ``ne`` itself for None."""
+    if prior is None:
+        return ne
+    H, g, cost = prior_terms(problem.poses, problem.intrinsics, prior)
+    return ne._replace(H_cc=ne.H_cc + H, b_c=ne.b_c + g, cost=ne.cost + cost)
+
+
+def marginalize_keyframe(
+    problem: WindowProblem, drop_index: int, config: MappingConfig | Config,
+    prior: Prior | None = None,
+) -> Prior:
+    """Prior on the remaining poses and the intrinsics left by marginalising keyframe
+    ``drop_index``'s pose and the inverse depths of the edges it hosts.
+
+    The dense linear system (camera vector plus the dropped keyframe's A depths) is built at
+    the current estimate from the residuals of the dropped keyframe's edges in every other
+    keyframe, plus the previous ``prior`` (H kept, gradient H dx + b); the residuals of other
+    keyframes' edges seen in the dropped keyframe are discarded, as in DSO (marginalising them
+    would couple the remaining depths into the prior). Then ``marginalize`` (Schur complement,
+    Jacobi-scaled pseudo-inverse of the pose block, after the depths' diagonal block).
+    Linearised once, here: the returned prior's H is the first-estimate one. The result is
+    in the layout of ``remove_keyframe(problem, drop_index)`` (its linearisation point: the
+    current remaining poses and intrinsics).
+    Cost: the normal equations plus O(m^2 A) for the depths and a 6 x 6 pseudo-inverse.
+    """
+    n, _, A = problem.uv.shape
+    m = 6 * n + 4
+    hosts = jnp.arange(n) == drop_index
+    ne = with_prior(normal_equations(problem, config, hosts=hosts), problem, prior)
+    cols = slice(drop_index * A, (drop_index + 1) * A)
+    Hcp, h_pp = ne.H_cp[:, cols], ne.h_pp[cols]
+    # the depths first (diagonal block: 1 / h, zero for unobserved slots), then the pose's
+    # 6 x 6 block: the same Schur complement as eliminating both at once, without the
+    # (6 + A)^2 pseudo-inverse (whose eigh took up to a second on some windows)
+    e = eliminate_diagonal(ne.H_cc, Hcp, h_pp, ne.b_c, ne.b_p[cols])
+    pose = np.arange(6 * drop_index, 6 * drop_index + 6)
+    keep = np.setdiff1d(np.arange(m), pose)
+    Hm, bm = marginalize(e.S, e.r, keep, pose)
+    rest = remove_keyframe(problem, drop_index)
+    return Prior(H=Hm, b=bm, poses=rest.poses, intrinsics=rest.intrinsics,
+                 mask=jnp.ones(m - 6, bool))
+
+
+def marginalize_edges(
+    problem: WindowProblem, edges: jnp.ndarray, config: MappingConfig, prior: Prior
+) -> Prior:
+    """Prior left by marginalising the inverse depths of ``edges`` (n, A) bool (their
+    residuals in every keyframe of the window), added to ``prior`` (whose H is kept, its
+    gradient taken at the current estimate: first-estimate Jacobians). The depth block is
+    diagonal, so the Schur complement (``schur.eliminate_diagonal``) needs no inverse but
+    1 / h_pp. Linearisation point: the
+    current poses and intrinsics."""
+    n = problem.poses.shape[0]
+    inl = normal_equations(problem, config).mask
+    ne = normal_equations(problem, config, mask=inl & edges[pair_hosts(n)])
+    H_p, g_p, _ = prior_terms(problem.poses, problem.intrinsics, prior)
+    e = eliminate_diagonal(H_p + ne.H_cc, ne.H_cp, ne.h_pp, g_p + ne.b_c, ne.b_p)
+    return Prior(H=e.S, b=e.r, poses=problem.poses, intrinsics=problem.intrinsics,
+                 mask=jnp.ones_like(prior.mask))

@@ -1,0 +1,43 @@
+"""Learning the tracker's weights by gradients: ``Params`` (the learnable numbers, apart
+from the static ``Config``), the differentiable alignment with its two adjoints, and pose
+losses against ground truth."""
+
+from .differentiable import (
+    ADJOINTS,
+    CONSISTENCY,
+    INTERPOLATIONS,
+    edge_magnitudes,
+    level_system,
+    newton_decrement,
+    selection_scores,
+    track_differentiable,
+    track_window,
+)
+from .losses import (
+    ate_loss,
+    pose_loss,
+    relative_pose_error,
+    rigid_alignment,
+    rpe_loss,
+    window_rpe_loss,
+)
+from .params import Params
+
+__all__ = [
+    "ADJOINTS",
+    "CONSISTENCY",
+    "INTERPOLATIONS",
+    "Params",
+    "ate_loss",
+    "edge_magnitudes",
+    "level_system",
+    "newton_decrement",
+    "pose_loss",
+    "relative_pose_error",
+    "rigid_alignment",
+    "rpe_loss",
+    "selection_scores",
+    "track_differentiable",
+    "track_window",
+    "window_rpe_loss",
+]

@@ -1,0 +1,433 @@
+"""Frame-to-keyframe edge tracking: the streaming ``Odometry`` and the sequence driver.
+
+Per frame (DESIGN.md): host preprocessing -> one jitted device call (coarse-to-fine solve
+against the keyframe's edges) -> host keyframe decision -> one trajectory line.
+The jitted solve sees fixed shapes only, so it compiles once per configuration and image size.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..backend.local_map import LocalMap
+from ..camera import Intrinsics
+from ..config import Config
+from ..derive import solve_knobs, solve_structure
+from ..determinism import full_precision
+from ..frontend.align import TrackResult, track
+from ..frontend.chunk import track_next_jit
+from ..frontend.keyframes import keyframe_reason
+from ..frontend.selection import KeyframeEdges, keyframe_edges
+from ..geometry import inverse_np, orthonormalise_np, predict_np, scale_motion_np
+from ..hostmem import aligned_array, to_host
+from ..image.preprocess import Frame, preprocess
+from ..learn.params import Params, solve_knobs_of
+
+_track_jit = full_precision(jax.jit(track, static_argnames="config"))
+
+OK, WEAK, LOST = "OK", "WEAK", "LOST"
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """What tracking one frame gives: pose T_world_cam (4, 4, float64), tracking state
+    (``OK``; ``WEAK``: usable but doubtful; ``LOST``: the pose is the constant-velocity
+    prediction, never NaN) and the reason when not OK, covariance (6, 6) of a left twist [v, w]
+    of T_cur_kf, level-0 inliers, whether the frame became a keyframe (and why), the number of
+    keyframe edges it was tracked with, the edge selection and local mapping times when it
+    became a keyframe (mapping None when off), and host timings in ms (preprocess; solve =
+    from dispatch to read-back; total). A keyframe's pose is the window's refined one."""
+
+    timestamp: float
+    pose: np.ndarray
+    state: str
+    reason: str | None
+    inliers: int
+    covariance: np.ndarray | None
+    keyframe: str | None
+    edges_used: int
+    select_ms: float | None
+    mapping_ms: float | None
+    preprocess_ms: float
+    solve_ms: float
+    total_ms: float
+
+
+class FrameResults:
+    """Mixin for a run's ``results`` (list of FrameResult): its timestamps and poses; a run
+    also has ``config`` and ``num_keyframes``, and ``summary_fields`` (its own statistics
+    for ``runner.summarise``)."""
+
+    results: list[FrameResult]
+    config: Config | None
+    num_keyframes: int
+
+    def summary_fields(self) -> dict:
+        """Statistics of this kind of run beyond the common ones (none here)."""
+        return {}
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        """(N,) timestamps of the tracked frames (s)."""
+        return np.array([r.timestamp for r in self.results])
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(N, 4, 4) T_world_cam of the tracked frames."""
+        return np.array([r.pose for r in self.results]).reshape(-1, 4, 4)
+
+
+@dataclass(frozen=True)
+class _Pending:
+    """A frame whose solve has been dispatched (asynchronously) but not read back yet."""
+
+    frame: Frame
+    timestamp: float
+    predicted: np.ndarray
+    output: object  # TrackResult of device arrays, or None for the first frame
+    preprocess_ms: float
+    t_submit: float
+
+
+@dataclass
+class _Keyframe:
+    timestamp: float
+    pose: np.ndarray  # T_world_kf
+    edges: KeyframeEdges  # on device
+    num_edges: int
+    inlier_counts: list[int] = field(default_factory=list)
+
+
+class Odometry:
+    """Streaming RGB-D edge odometry.
+
+    >>> odo = Odometry(Config(), Intrinsics(535.4, 539.2, 320.1, 247.6))
+    >>> result = odo.track(rgb, depth_m, timestamp)  # doctest: +SKIP
+
+    ``initial_pose`` (4, 4) is T_world_cam of the first frame (identity by default).
+    ``params``: learnt ``params.Params`` (e.g. from ``scripts/learn_weights.py``) in place of
+    the config's numbers: Huber radii, consistency threshold and the per-edge weighting
+    model drive the solve (``params.solve_knobs_of``), ``reobs_a`` the edge selection. None
+    or ``Params.default(config)`` give the plain tracker's trajectory, bit for bit.
+    ``track`` is synchronous. ``submit`` + ``complete`` split it: ``submit`` dispatches the
+    device solve and returns at once, so the caller can prepare the next frame on another
+    core before ``complete`` reads the result back (one frame in flight at a time).
+    """
+
+    def __init__(
+        self, config: Config, intrinsics: Intrinsics, *, initial_pose: np.ndarray | None = None,
+        params: Params | None = None,
+    ) -> None:
+        self.config = config
+        self.intrinsics = Intrinsics(*(float(x) for x in intrinsics)).validate()
+        pose = np.eye(4) if initial_pose is None else np.asarray(initial_pose, np.float64)
+        if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+            raise ValueError("initial_pose must be a finite 4x4 matrix")
+        self._initial = pose
+        self._kf: _Keyframe | None = None
+        self._poses: list[np.ndarray] = []  # the last two T_world_cam, for constant velocity
+        self._last_t: float | None = None
+        self._in_flight = False
+        self.num_keyframes = 0
+        self.local_map: LocalMap | None = None  # made with the first keyframe (image size)
+        self._previous: list[_Keyframe] = []  # earlier keyframes, for recovery after a loss
+        self._shape: tuple[int, int] | None = None  # (H, W) of the frames seen by ``track``
+        # the solve's numbers, passed as (traced) arrays, and its static part: configurations
+        # that differ in numbers only share one compiled program
+        self.knobs, self._static = solve_knobs(config), solve_structure(config)
+        self.params = params
+        self._reobs_a: float | None = None  # the selection's offset a (None: the config's)
+        if params is not None:
+            self.knobs = solve_knobs_of(params, config)
+            self._reobs_a = float(np.asarray(params.reobs_a, np.float64))
+        self._constants_key: tuple[float, ...] | None = None  # see _device_constants
+        # the last two poses relative to the keyframe, A = T_(i-1)_kf and B = T_(i-2)_kf
+        # (float32): the device predicts the next one from them (chunk.predict_matrix)
+        self._rel: tuple[np.ndarray, np.ndarray] | None = None
+
+    # -- public -------------------------------------------------------------------------
+    def track(self, rgb: np.ndarray, depth: np.ndarray, timestamp: float) -> FrameResult:
+        """Track one frame: rgb (H, W, 3) (or gray (H, W)) uint8, depth (H, W) float in
+        metres (0 or NaN = missing), timestamp in seconds, increasing. ValueError naming the
+        problem for arrays of the wrong kind or size (before any JAX code runs)."""
+        self._check_frame(rgb, depth, timestamp)
+        t0 = time.perf_counter()
+        frame = preprocess(rgb, depth, self.config)
+        pre_ms = (time.perf_counter() - t0) * 1e3
+        return self.complete(self.submit(frame, timestamp, preprocess_ms=pre_ms))
+
+    def track_frame(self, frame: Frame, timestamp: float) -> FrameResult:
+        """Track one pre-processed frame (synchronous)."""
+        return self.complete(self.submit(frame, timestamp))
+
+    def submit(self, frame: Frame, timestamp: float, *, preprocess_ms: float = 0.0) -> _Pending:
+        """Dispatch the solve of one pre-processed frame; read it back with ``complete``."""
+        if self._in_flight:
+            raise RuntimeError("complete() the frame in flight before submitting another")
+        timestamp = float(timestamp)
+        if self._last_t is not None and timestamp <= self._last_t:
+            raise ValueError(
+                f"timestamp {timestamp:.6f} does not increase (last was {self._last_t:.6f})"
+            )
+        t_submit = time.perf_counter()
+        self._last_t = timestamp
+        self._in_flight = True
+        if self._kf is None:
+            return _Pending(frame, timestamp, self._initial, None, preprocess_ms, t_submit)
+        A, B = self._rel
+        intr, knobs = self._device_constants()
+        output = track_next_jit(self._kf.edges, frame.dist, frame.edge_map, A, B,
+                                intr, knobs, config=self._static)
+        return _Pending(frame, timestamp, self._predict(), output, preprocess_ms, t_submit)
+
+    def complete(self, pending: _Pending) -> FrameResult:
+        """Wait for a submitted frame, decide its state and keyframe, and return its result."""
+        self._in_flight = False
+        if pending.output is None:  # first frame (or no usable keyframe yet)
+            return self._first(pending)
+        res = to_host(pending.output)
+        return self._conclude(pending, res, time.perf_counter())[0]
+
+    @property
+    def has_keyframe(self) -> bool:
+        """Whether a keyframe exists (frames are solved against it from then on)."""
+        return self._kf is not None
+
+    @property
+    def structure(self) -> object:
+        """The static part of the solve (a jit static argument; see ``solve_inputs``)."""
+        return self._static
+
+    def solve_inputs(self) -> tuple[KeyframeEdges, np.ndarray, np.ndarray, Intrinsics, object]:
+        """What a solve of the next frames needs besides the frames, for solves made
+        elsewhere (``runner.track_in_chunks``, ``batch.evaluate``) and concluded by
+        ``accept``: the keyframe's edges, A = T_(i-1)_kf and B = T_(i-2)_kf (float32, the
+        constant-velocity prediction's inputs, ``chunk.predict``), the intrinsics and the
+        solve's numbers. RuntimeError before the first keyframe."""
+        if self._kf is None:
+            raise RuntimeError("no keyframe yet: track the first frame with track_frame")
+        return (self._kf.edges, *self._rel, self.intrinsics, self.knobs)
+
+    def accept(self, frame: Frame, timestamp: float, res: TrackResult, *,
+               preprocess_ms: float = 0.0, t_submit: float | None = None
+               ) -> tuple[FrameResult, bool]:
+        """Conclude a frame whose solve ``res`` (host arrays) was computed elsewhere (the
+        scan, a batch) from this tracker's current ``solve_inputs``. Returns its result and
+        whether the state went on plainly (False: a keyframe, a loss or a recovery changed
+        it, and later results of the same chunk are stale)."""
+        timestamp = float(timestamp)
+        if self._last_t is not None and timestamp <= self._last_t:
+            raise ValueError(
+                f"timestamp {timestamp:.6f} does not increase (last was {self._last_t:.6f})"
+            )
+        self._last_t = timestamp
+        t_submit = time.perf_counter() if t_submit is None else t_submit
+        pending = _Pending(frame, timestamp, self._predict(), None, preprocess_ms, t_submit)
+        return self._conclude(pending, res, time.perf_counter())
+
+    def _first(self, pending: _Pending) -> FrameResult:
+        """The first frame (or one while there is no usable keyframe): it becomes the
+        keyframe when it has enough edges with depth."""
+        made_kf = self._make_keyframe(pending.frame, pending.timestamp, pending.predicted)
+        pose = pending.predicted if made_kf is None else made_kf[0]
+        self._push(pose)
+        state, reason = (OK, None) if made_kf else (LOST, "no edges with depth")
+        if self._kf is not None:
+            self._rel = self._relative_from_world()
+        return self._result(pending, pose, state, reason, 0, None,
+                            "first" if made_kf else None, 0, made_kf, time.perf_counter())
+
+    def _conclude(self, pending: _Pending, res, t_solve: float) -> tuple[FrameResult, bool]:
+        """State, recovery, keyframe decision and pose of a solved frame (see ``accept``)."""
+        frame, timestamp = pending.frame, pending.timestamp
+        kf = start_kf = self._kf
+        solved = res
+        lost = self._lost_reason(frame, res)
+        # lost, or far fewer inliers than this keyframe's frames had (a wrong basin, as
+        # after a prediction far off): recovery tries other starts and other keyframes
+        collapsed = lost is None and kf.inlier_counts and int(res.inliers) < (
+            self.config.kf_min_inlier_ratio * float(np.mean(kf.inlier_counts)))
+        if (lost is not None and frame.num_edges > 0) or collapsed:
+            found = self._recover(frame, pending.predicted)
+            if found is not None and (lost is not None or (
+                    found[1].cost < res.cost if found[0] is kf
+                    else found[1].inliers > res.inliers)):
+                kf, res = found
+                lost = None
+        inliers = int(res.inliers)
+        weak = None
+        if lost is None:
+            T_c_k = np.asarray(res.T_c_k, np.float64)
+            pose = kf.pose @ inverse_np(orthonormalise_np(T_c_k))
+            reason = keyframe_reason(
+                flow=float(res.flow), flow_t=float(res.flow_t), inliers=inliers,
+                inlier_mean=float(np.mean(kf.inlier_counts)) if kf.inlier_counts else None,
+                dt=timestamp - kf.timestamp, config=self.config,
+            )
+            kf.inlier_counts.append(inliers)
+            weak = self._weak_reason(frame, res)
+            if kf is not self._kf:  # recovered against an earlier keyframe: it takes over
+                self._kf = kf
+        else:
+            pose, reason = pending.predicted, "lost"  # predicted (constant velocity), flagged
+        used = kf.num_edges
+        made_kf = self._make_keyframe(frame, timestamp, pose) if reason else None
+        if made_kf is not None:
+            pose = made_kf[0]  # refined in the window
+        self._push(pose)
+        plain = lost is None and kf is start_kf and made_kf is None and res is solved
+        # the device predicts the next frame from A, B: the solve's own float32 pose when
+        # nothing changed (as the scan carries it), else from the host's world poses
+        self._rel = ((np.asarray(res.T_c_k, np.float32), self._rel[0]) if plain
+                     else self._relative_from_world())
+        cov = np.asarray(res.covariance, np.float64) if lost is None else None
+        state = LOST if lost else (WEAK if weak else OK)
+        return self._result(pending, pose, state, lost or weak, inliers, cov,
+                            reason if made_kf else None, used, made_kf, t_solve), plain
+
+    def _lost_reason(self, frame: Frame, res) -> str | None:
+        """Why a solve result cannot be used (None: it can): no edges in the frame,
+        non-finite pose or covariance, too few inliers, ill-conditioned covariance."""
+        if frame.num_edges == 0:
+            return "no edges in the frame"
+        T = np.asarray(res.T_c_k, np.float64)
+        cov = np.asarray(res.covariance, np.float64)
+        if not (np.all(np.isfinite(T)) and np.all(np.isfinite(cov))):
+            return "non-finite pose"
+        if int(res.inliers) < self.config.min_inliers:
+            return f"too few inliers ({int(res.inliers)})"
+        eig = np.linalg.eigvalsh(0.5 * (cov + cov.T))  # symmetric: cheaper than cond's SVD
+        cond = eig[-1] / eig[0] if eig[0] > 0 else np.inf
+        if not cond <= self.config.max_covariance_condition:
+            return f"covariance ill-conditioned (condition {cond:.2g})"
+        return None
+
+    def _weak_reason(self, frame: Frame, res) -> str | None:
+        """Why a usable result is doubtful: inliers whose mean residual is over half the gate
+        (random matches under the gate average half of it), or a frame without depth (it
+        cannot become a keyframe)."""
+        mean = float(res.mean_residual)
+        if mean > 0.5 * self.config.max_residual[0]:
+            return f"mean residual {mean:.2f} px over half the gate"
+        if not np.any(frame.edge_depth > 0):
+            return "no depth (cannot become a keyframe)"
+        return None
+
+    def _recover(self, frame: Frame, predicted: np.ndarray):
+        """After a loss: align again from other starting poses (the keyframe's own pose, the
+        last frame's, constant velocity doubled and halved) against the current keyframe,
+        then against the earlier keyframes kept; the first keyframe where a start succeeds
+        wins, with the start of lowest robust cost. Returns (keyframe, result) or None."""
+        last = self._poses[-1]
+        starts = [last]
+        if len(self._poses) == 2:
+            step = inverse_np(self._poses[0]) @ last  # one frame's motion
+            starts += [last @ step @ step, last @ scale_motion_np(step, 0.5)]
+        for kf in [self._kf, *reversed(self._previous)]:
+            guesses = [kf.pose, *starts] if kf is self._kf else [predicted, *starts]
+            best = None
+            for T_w_c in guesses:
+                out = to_host(_track_jit(
+                    kf.edges, frame.dist, frame.edge_map,
+                    (inverse_np(T_w_c) @ kf.pose).astype(np.float32), self.intrinsics,
+                    config=self._static, knobs=self.knobs))
+                if self._lost_reason(frame, out) is None and (
+                        best is None or float(out.cost) < float(best.cost)):
+                    best = out
+            if best is not None:
+                return kf, best
+        return None
+
+    # -- internals ------------------------------------------------------------------------
+    def _check_frame(self, rgb, depth, timestamp) -> None:
+        """Clear errors for frames the pipeline cannot take (see ``track``)."""
+        rgb, depth = np.asarray(rgb), np.asarray(depth)
+        if rgb.dtype != np.uint8 or not (rgb.ndim == 2 or (rgb.ndim == 3 and rgb.shape[2] == 3)):
+            raise ValueError(f"rgb must be uint8 (H, W, 3) or (H, W), got {rgb.dtype} "
+                             f"{rgb.shape}")
+        if depth.ndim != 2 or depth.dtype.kind != "f":
+            hint = " (raw TUM depth PNGs: divide by 5000 for metres)" \
+                if depth.dtype.kind in "ui" else ""
+            raise ValueError(f"depth must be float metres (H, W), got {depth.dtype} "
+                             f"{depth.shape}{hint}")
+        if depth.shape != rgb.shape[:2]:
+            raise ValueError(f"rgb is {rgb.shape[1]}x{rgb.shape[0]} but depth is "
+                             f"{depth.shape[1]}x{depth.shape[0]} (width x height)")
+        if self._shape is not None and depth.shape != self._shape:
+            raise ValueError(f"frame is {depth.shape[1]}x{depth.shape[0]}, earlier frames were "
+                             f"{self._shape[1]}x{self._shape[0]} (width x height)")
+        if not np.isfinite(float(timestamp)):
+            raise ValueError(f"timestamp must be finite, got {timestamp}")
+        self._shape = depth.shape
+
+    def _device_constants(self) -> tuple[Intrinsics, object]:
+        """Intrinsics and solve knobs as device arrays, made once (and again when the local
+        map refines the intrinsics): a jitted call converts each host argument anew."""
+        key = tuple(self.intrinsics)
+        if self._constants_key != key:
+            self._constants = (Intrinsics(*jnp.asarray(key, jnp.float32)),
+                               jax.device_put(self.knobs))
+            self._constants_key = key
+        return self._constants
+
+    def _predict(self) -> np.ndarray:
+        """Constant velocity: T_w_pred = T_w_last (T_w_prev^-1 T_w_last) (``predict_np``)."""
+        if len(self._poses) < 2:
+            return self._poses[-1]
+        prev, last = self._poses
+        return predict_np(last, prev)
+
+    def _relative_from_world(self) -> tuple[np.ndarray, np.ndarray]:
+        """A, B (float32) from the last two world poses and the keyframe's (float64)."""
+        rel = [aligned_array(inverse_np(p) @ self._kf.pose, np.float32) for p in self._poses]
+        return rel[-1], rel[0]
+
+    def _push(self, pose: np.ndarray) -> None:
+        self._poses = (self._poses + [pose])[-2:]
+
+    def _make_keyframe(self, frame: Frame, timestamp: float, pose: np.ndarray
+                       ) -> tuple[np.ndarray, float, float | None] | None:
+        """Make the frame the keyframe: select its edges, hand it to the local map. Returns
+        its (refined) pose, the selection and mapping times (ms), or None when it has too few
+        usable edges (the old keyframe stays)."""
+        t0 = time.perf_counter()
+        # prior motion for the selection: constant velocity, T_next_kf = T_w_kf^-1 T_w_prev
+        T_prior = inverse_np(pose) @ self._poses[-1] if self._poses else np.eye(4)
+        edges = keyframe_edges(frame, self.config, seed=self.config.seed + self.num_keyframes,
+                               T_prior=T_prior, intr=self.intrinsics, reobs_a=self._reobs_a)
+        n = int(edges.valid.sum())
+        if n < self.config.min_inliers:
+            return None
+        t1 = time.perf_counter()
+        mapping_ms = None
+        if self.config.mapping:
+            if self.local_map is None:
+                self.local_map = LocalMap(self.config, np.asarray(self.intrinsics), frame.shape)
+            pose, _ = self.local_map.add_keyframe(pose, edges, frame)
+            if self.config.mapping_intrinsics:
+                self.intrinsics = self.local_map.camera
+            mapping_ms = (time.perf_counter() - t1) * 1e3
+        if self._kf is not None:
+            self._previous = [*self._previous, self._kf][-(self.config.recovery_keyframes):]
+        self._kf = _Keyframe(timestamp, pose, KeyframeEdges(*(jnp.asarray(a) for a in edges)), n)
+        self.num_keyframes += 1
+        return pose, (t1 - t0) * 1e3, mapping_ms
+
+    def _result(self, pending, pose, state, reason, inliers, cov, kf, used, made_kf,
+                t_solve) -> FrameResult:
+        t_end = time.perf_counter()
+        solve_ms = (t_solve - pending.t_submit) * 1e3
+        return FrameResult(
+            timestamp=pending.timestamp, pose=pose, state=state, reason=reason, inliers=inliers,
+            covariance=cov, keyframe=kf, edges_used=used,
+            select_ms=made_kf[1] if made_kf else None,
+            mapping_ms=made_kf[2] if made_kf else None,
+            preprocess_ms=pending.preprocess_ms, solve_ms=solve_ms,
+            total_ms=pending.preprocess_ms + (t_end - pending.t_submit) * 1e3,
+        )
+

@@ -1,0 +1,253 @@
+"""Running the tracker over a whole TUM sequence: decoding, pipelining, trajectory file,
+progress bar and the run's statistics; and tracking in device-side chunks (the scan).
+
+Frame i is decoded, frame i-1 submitted to the device, frame i's edges found and its distance
+transform started on a worker thread; frame i-1 is completed (its solve result read back,
+keyframe decision and edge selection) while that transform runs, then frame i's
+preprocessing finished. JAX dispatch is asynchronous and OpenCV releases the GIL, so the two
+cores share the work. The solve overlaps preprocessing only, never decoding, so the reported
+per-frame time (decoding excluded) is what a live camera would see. Tracking results are
+identical to the synchronous ``Odometry.track``: preprocessing does not depend on the tracking
+state.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import jax
+import numpy as np
+from tqdm import tqdm
+
+from ..config import Config
+from ..datasets.tum import TumSequence, groundtruth_pose_at
+from ..frontend.align import TrackResult
+from ..frontend.chunk import track_chunk_jit
+from ..hostmem import aligned_stack, to_host
+from ..image.interp import stack_edge_maps
+from ..image.preprocess import Frame, start_preprocess
+from ..io import TrajectoryWriter, matrices_to_poses7, poses7_to_matrices
+from ..learn.params import Params
+from ..metrics import ate, rpe
+from .odometry import LOST, OK, WEAK, FrameResult, FrameResults, Odometry
+
+
+@dataclass
+class RunResult(FrameResults):
+    """A finished (or interrupted) run: per-frame results in order, the wall time of each
+    frame with image decoding excluded (ms; with pipelining this is the frame period), the
+    decode times (ms), and the first tracked frame's time, which includes compilation (s)."""
+
+    results: list[FrameResult] = field(default_factory=list)
+    frame_ms: list[float] = field(default_factory=list)
+    decode_ms: list[float] = field(default_factory=list)
+    compile_s: float = float("nan")
+    num_keyframes: int = 0
+    stopped_at: int | None = None  # index of the first frame not processed, if interrupted
+    config: Config | None = None
+
+    def summary_fields(self) -> dict:
+        """Timing statistics for ``summarise``. ms_per_frame covers warm frames: from the
+        third on (the first only becomes the keyframe, the second compiles), image decoding
+        excluded; select_ms covers every keyframe but the first (whose selection compiles);
+        mapping_ms every keyframe after the first window_size + 1 (activation, refinement
+        and marginalisation compile on those)."""
+        warm = np.asarray(self.frame_ms[2:], np.float64)
+        mapping_warm = self.config.window_size + 1 if self.config is not None else 0
+        out = {
+            "compile_s": self.compile_s,
+            "ms_per_frame": _describe(warm),
+            "preprocess_ms": _describe([r.preprocess_ms for r in self.results[2:]]),
+            "solve_wait_ms": _describe([r.solve_ms for r in self.results[2:]]),
+            "decode_ms": _describe(self.decode_ms[2:]),
+            "select_ms": _describe(
+                [r.select_ms for r in self.results if r.select_ms is not None][1:]),
+            "mapping_ms": _describe(
+                [r.mapping_ms for r in self.results if r.mapping_ms is not None][mapping_warm:]),
+            "edges_used_mean": float(np.mean([r.edges_used for r in self.results[1:]]))
+            if len(self.results) > 1 else float("nan"),
+        }
+        if self.stopped_at is not None:
+            out["stopped_at_frame"] = self.stopped_at
+        return out
+
+
+def enable_compilation_cache() -> str | None:
+    """Keep compiled XLA programs on disk between runs (EDGEVO_CACHE_DIR, default
+    ~/.cache/edgevo_jax): the first run compiles for seconds, later runs load in about one.
+    An empty EDGEVO_CACHE_DIR turns it off. Returns the folder, or None."""
+    import os
+
+    import jax
+
+    path = os.environ.get("EDGEVO_CACHE_DIR", str(Path.home() / ".cache" / "edgevo_jax"))
+    if path:
+        jax.config.update("jax_compilation_cache_dir", path)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    return path or None
+
+
+def initial_pose(seq: TumSequence) -> np.ndarray:
+    """T_world_cam of the first frame: the nearest ground-truth pose, else identity."""
+    if len(seq) == 0:
+        return np.eye(4)
+    pose7 = groundtruth_pose_at(seq, float(seq.timestamps[0]))
+    return np.eye(4) if pose7 is None else poses7_to_matrices(np.asarray(pose7)[None])[0]
+
+
+def run_sequence(
+    seq: TumSequence,
+    config: Config,
+    *,
+    out: str | Path | None = None,
+    progress: bool = True,
+    max_frames: int | None = None,
+    params: Params | None = None,
+) -> RunResult:
+    """Track every associated frame of ``seq``; write the TUM trajectory to ``out`` line by
+    line (flushed; renamed into place at the end). Returns the per-frame results.
+    ``params``: learnt parameters for the tracker (``tracker.Odometry``; None: the config's)."""
+    odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq), params=params)
+    n = len(seq) if max_frames is None else min(len(seq), max_frames)
+    run = RunResult(config=config)
+    writer = TrajectoryWriter(out) if out is not None else None
+    bar = tqdm(total=n, desc=seq.name, unit="frame", disable=not progress, leave=False)
+    ready = None  # (frame, timestamp, preprocess ms) decoded and pre-processed, not submitted
+    t_prev = time.perf_counter()
+    try:
+        for i in range(n + 1):
+            decode_s = 0.0
+            if i < n:
+                t0 = time.perf_counter()
+                rgb, raw_depth = seq.decode_frame(i)
+                decode_s = time.perf_counter() - t0
+                run.decode_ms.append(decode_s * 1e3)
+            # submit after decoding, so that the solve overlaps preprocessing only
+            pending = odo.submit(*ready[:2], preprocess_ms=ready[2]) if ready else None
+            job, pre_s = None, 0.0
+            if i < n:
+                t1 = time.perf_counter()
+                job = start_preprocess(*seq.rectify_frame(rgb, raw_depth), config)
+                pre_s = time.perf_counter() - t1
+            result = odo.complete(pending) if pending is not None else None  # meanwhile: DT
+            if job is not None:
+                t2 = time.perf_counter()
+                ready = (job.finish(), float(seq.timestamps[i]),
+                         (pre_s + time.perf_counter() - t2) * 1e3)
+            if result is not None:
+                _record(run, result, writer)
+                now = time.perf_counter()
+                period_ms = (now - t_prev - decode_s) * 1e3
+                run.frame_ms.append(period_ms)
+                if len(run.results) == 2:
+                    run.compile_s = period_ms * 1e-3
+                t_prev = now
+                bar.update(1)
+                bar.set_postfix(kf=odo.num_keyframes, refresh=False)
+    except BaseException as exc:
+        run.stopped_at = len(run.results)
+        kept = ""
+        if writer is not None:
+            writer.abort()  # keeps the lines written so far in the .part file
+            kept = f"; the {writer.count} poses done are in {writer.part_path}"
+        exc.add_note(f"{seq.name}: the run stopped at frame {run.stopped_at} of {n}{kept}")
+        exc.run_result = run  # type: ignore[attr-defined]  # the partial RunResult
+        raise
+    finally:
+        bar.close()
+        run.num_keyframes = odo.num_keyframes
+    if writer is not None:
+        writer.close()
+    return run
+
+
+def track_in_chunks(odo: Odometry, frames: list[Frame], timestamps: list[float], *,
+                    size: int) -> list[FrameResult]:
+    """Track pre-processed frames with the scan tracker (``chunk.track_chunk``): chunks of
+    ``size`` frames (the last one padded by repetition) are tracked on the device against
+    the current keyframe in one call each; the host then concludes them in order and, at the
+    first frame that changes the state (a new keyframe, a loss, a recovery), drops the rest
+    of the chunk and tracks it again from there. Gives the trajectory of
+    ``odo.track_frame`` called frame by frame."""
+    if len(frames) != len(timestamps):
+        raise ValueError(f"{len(frames)} frames but {len(timestamps)} timestamps")
+    results: list[FrameResult] = []
+    i = 0
+    while i < len(frames):
+        if not odo.has_keyframe:
+            results.append(odo.track_frame(frames[i], timestamps[i]))
+            i += 1
+            continue
+        todo = frames[i:i + size]
+        t_submit = time.perf_counter()
+        out = to_host(dispatch_chunk(odo, todo, size))
+        for j in range(len(todo)):
+            res = jax.tree.map(lambda a, j=j: a[j], out)
+            result, plain = odo.accept(todo[j], timestamps[i + j], res, t_submit=t_submit)
+            results.append(result)
+            if not plain:
+                break
+        i += j + 1
+    return results
+
+
+def dispatch_chunk(odo: Odometry, frames: list[Frame], size: int) -> TrackResult:
+    """Dispatch the scan over ``frames`` (at most ``size``, padded to it by repeating the
+    last) against ``odo``'s current keyframe; returns device arrays (C leading)."""
+    if not 0 < len(frames) <= size:
+        raise ValueError(f"a chunk takes 1 to {size} frames, got {len(frames)}")
+    frames = list(frames) + [frames[-1]] * (size - len(frames))
+    dist = tuple(aligned_stack([f.dist[lv] for f in frames])
+                 for lv in range(len(frames[0].dist)))
+    ng = stack_edge_maps([f.edge_map for f in frames])
+    kf, A, B, intr, knobs = odo.solve_inputs()
+    return track_chunk_jit(kf, dist, ng, A, B, intr, knobs, config=odo.structure)
+
+
+def _record(run: RunResult, result: FrameResult, writer: TrajectoryWriter | None) -> None:
+    run.results.append(result)
+    if writer is not None:
+        writer.write(result.timestamp, matrices_to_poses7(result.pose[None])[0])
+
+
+def summarise(run: FrameResults, seq: TumSequence) -> dict:
+    """A run's statistics (the CLI's ``--stats`` JSON; one row of ``edgevo batch``): counts
+    of frames, keyframes, lost and weak frames and their reasons, the run's own fields
+    (``RunResult``: timings; ``BatchRun``: its configuration's index), the configuration,
+    and ATE / RPE against the sequence's ground truth when it has one."""
+    stats: dict = {
+        "sequence": seq.name,
+        "frames": len(run.results),
+        "keyframes": run.num_keyframes,
+        "lost": sum(r.state == LOST for r in run.results),
+        "weak": sum(r.state == WEAK for r in run.results),
+        "flags": dict(Counter(f"{r.state}: {r.reason}" for r in run.results
+                              if r.state != OK)),
+        **run.summary_fields(),
+        "config": dataclasses.asdict(run.config) if run.config is not None else None,
+    }
+    if seq.groundtruth is not None and len(run.results) < 3:
+        stats["ground_truth_note"] = f"only {len(run.results)} frames tracked, ATE needs 3"
+    if seq.groundtruth is not None and len(run.results) >= 3:
+        gt_t, gt_p = seq.groundtruth
+        est = matrices_to_poses7(run.poses)
+        try:
+            stats["ate_rmse_m"] = ate(gt_t, gt_p, run.timestamps, est)["rmse"]
+            r = rpe(gt_t, gt_p, run.timestamps, est)
+            stats["rpe_rmse_m_per_s"] = r["trans_rmse_m_per_s"]
+            stats["rpe_rmse_deg_per_s"] = r["rot_rmse_deg_per_s"]
+        except ValueError as err:  # e.g. no timestamps in common with the ground truth
+            stats["ground_truth_note"] = str(err)
+    return stats
+
+
+def _describe(values) -> dict:
+    v = np.asarray(values, np.float64)
+    if v.size == 0:
+        return {"median": float("nan"), "mean": float("nan"), "p90": float("nan")}
+    return {"median": float(np.median(v)), "mean": float(v.mean()),
+            "p90": float(np.percentile(v, 90))}
