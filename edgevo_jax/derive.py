@@ -17,13 +17,15 @@ Window (``mapping.refine``, ``local_map``):
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
 
 from .config import Config
-from .frontend.robust import EdgeWeighting
+
+if TYPE_CHECKING:  # a type only: derive sits below the front end that defines it
+    from .frontend.robust import EdgeWeighting
 
 
 # --- the tracker ---------------------------------------------------------------------------
