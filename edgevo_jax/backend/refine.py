@@ -65,6 +65,52 @@ class _Judged(NamedTuple):
     fixed_set_cost: jnp.ndarray
 
 
+def _judged_system(p: WindowProblem, prev_mask: jnp.ndarray, cfg: MappingConfig,
+                   prior: Prior) -> _Judged:
+    """The normal equations at p (its own inliers, the depth prior and ``prior`` added) and
+    p's energy judged with the inliers ``prev_mask`` (n, n-1, A) of the try's start."""
+    e = edge_residuals(p, cfg.eta)
+    inl = inlier_mask(e, e.considered, cfg)
+    ne = with_depth_prior(normal_blocks(e, e.considered, inl, cfg), p, cfg)
+    terms = depth_prior_terms(p, cfg)
+    fixed_cost = robust_cost(e, e.considered, prev_mask, cfg) + (
+        0.0 if terms is None else terms[2])
+    ne_p = with_prior(ne, p, prior)
+    return _Judged(ne_p, fixed_cost + (ne_p.cost - ne.cost))
+
+
+def _fixed_variables(n: int, cfg: MappingConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Which of the 6 n + 4 camera variables stay fixed (static bool masks): in the pose-only
+    warm-up (the gauge pose and the intrinsics) and in the joint tries (the gauge pose, and
+    the intrinsics unless ``refine_intrinsics``)."""
+    m = 6 * n + 4
+    gauge = np.zeros(m, bool)
+    gauge[6 * cfg.gauge_index: 6 * cfg.gauge_index + 6] = True
+    pose_only = gauge.copy()
+    pose_only[6 * n:] = True
+    joint = gauge.copy()
+    joint[6 * n:] = not cfg.refine_intrinsics
+    return pose_only, joint
+
+
+def _damped_step(ne: NormalEquations, lam: jnp.ndarray, joint_stage: jnp.ndarray,
+                 pose_only: np.ndarray, joint: np.ndarray, cfg: MappingConfig
+                 ) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """The damped Schur-complement step (camera (m,), depths (n A,)) with the stage's fixed
+    variables held (identity rows) and, before the joint stage, the depths frozen; zeros
+    where the solve is not finite."""
+    fixed = jnp.where(joint_stage, jnp.asarray(joint), jnp.asarray(pose_only))
+    depths = joint_stage & cfg.refine_depths
+    free = ~fixed
+    H_cc = jnp.where(free[:, None] & free[None, :], ne.H_cc, 0.0) + jnp.diag(
+        fixed.astype(ne.H_cc.dtype))
+    H_cp = jnp.where(free[:, None] & depths, ne.H_cp, 0.0)
+    h_pp = jnp.where(depths, ne.h_pp, 0.0)  # zero depth rows: schur_solve gives delta 0
+    dc, dp = schur_solve(H_cc, H_cp, h_pp, jnp.where(free, ne.b_c, 0.0), ne.b_p, lam)
+    ok = jnp.all(jnp.isfinite(dc)) & jnp.all(jnp.isfinite(dp))
+    return jnp.where(ok, dc, 0.0), jnp.where(ok, dp, 0.0)
+
+
 def refine(
     problem: WindowProblem, config: MappingConfig | Config, prior: Prior | None = None,
     iterations: int | None = None,
@@ -95,37 +141,10 @@ def refine(
     prior = no_prior(problem) if prior is None else prior
     iters = cfg.iterations if iterations is None else iterations
     warm = cfg.warmup_iterations
-    n = problem.poses.shape[0]
-    m = 6 * n + 4
-    gauge = np.zeros(m, bool)
-    gauge[6 * cfg.gauge_index: 6 * cfg.gauge_index + 6] = True
-    pose_only = gauge.copy()
-    pose_only[6 * n:] = True
-    joint = gauge.copy()
-    joint[6 * n:] = not cfg.refine_intrinsics
+    pose_only, joint = _fixed_variables(problem.poses.shape[0], cfg)
 
-    def system(p: WindowProblem, prev_mask: jnp.ndarray):
-        """Blocks at p (own inliers, prior added) and the energy with prev_mask's inliers."""
-        e = edge_residuals(p, cfg.eta)
-        inl = inlier_mask(e, e.considered, cfg)
-        ne = with_depth_prior(normal_blocks(e, e.considered, inl, cfg), p, cfg)
-        terms = depth_prior_terms(p, cfg)
-        fixed_cost = robust_cost(e, e.considered, prev_mask, cfg) + (
-            0.0 if terms is None else terms[2])
-        ne_p = with_prior(ne, p, prior)
-        return ne_p, fixed_cost + (ne_p.cost - ne.cost)
-
-    def step(p: WindowProblem, ne: NormalEquations, lam: jnp.ndarray, joint_stage: jnp.ndarray):
-        fixed = jnp.where(joint_stage, jnp.asarray(joint), jnp.asarray(pose_only))
-        depths = joint_stage & cfg.refine_depths
-        free = ~fixed
-        H_cc = jnp.where(free[:, None] & free[None, :], ne.H_cc, 0.0) + jnp.diag(
-            fixed.astype(ne.H_cc.dtype))
-        H_cp = jnp.where(free[:, None] & depths, ne.H_cp, 0.0)
-        h_pp = jnp.where(depths, ne.h_pp, 0.0)  # zero depth rows: schur_solve gives delta 0
-        dc, dp = schur_solve(H_cc, H_cp, h_pp, jnp.where(free, ne.b_c, 0.0), ne.b_p, lam)
-        ok = jnp.all(jnp.isfinite(dc)) & jnp.all(jnp.isfinite(dp))
-        return jnp.where(ok, dc, 0.0), jnp.where(ok, dp, 0.0)
+    def system(p: WindowProblem, prev_mask: jnp.ndarray) -> _Judged:
+        return _judged_system(p, prev_mask, cfg, prior)
 
     def at(x) -> WindowProblem:
         return problem._replace(poses=x[0], rho=x[1], intrinsics=x[2])
@@ -142,7 +161,7 @@ def refine(
         state = state._replace(lam=jnp.where(i == warm + 1, cfg.lambda_init, state.lam))
 
         def solve(x, judged: _Judged, lam):
-            dc, dp = step(at(x), judged.ne, lam, i > warm)
+            dc, dp = _damped_step(judged.ne, lam, i > warm, pose_only, joint, cfg)
             return jnp.where(i == 0, 0.0, dc), jnp.where(i == 0, 0.0, dp)
 
         def apply(x, delta):
@@ -153,7 +172,7 @@ def refine(
 
         state, new = lm.step(
             state, solve=solve, apply=apply,
-            evaluate=lambda x, judged: _Judged(*system(at(x), judged.ne.mask)),
+            evaluate=lambda x, judged: system(at(x), judged.ne.mask),
             accept=lambda old, new: new.fixed_set_cost < old.ne.cost,
             norm=lambda d: jnp.sqrt(d[0] @ d[0] + d[1] @ d[1]))
         # a converged warm-up must not end the loop before the joint tries
@@ -164,7 +183,7 @@ def refine(
     log_rho_sum = jnp.sum(jnp.where(problem.valid,
                                     jnp.log(jnp.where(problem.valid, problem.rho, 1.0)), 0.0))
     n_, _, A_ = problem.uv.shape
-    shapes = jax.eval_shape(system, problem, jnp.zeros((n_, n_ - 1, A_), bool))[0]
+    shapes = jax.eval_shape(system, problem, jnp.zeros((n_, n_ - 1, A_), bool)).ne
     ne0 = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
     ne0 = ne0._replace(cost=jnp.asarray(jnp.inf, shapes.cost.dtype))
     x0 = (problem.poses, problem.rho, problem.intrinsics)
