@@ -3,14 +3,14 @@ solvers run on, and says once which of them are static (jit static arguments: th
 unroll the program) and which are traced (arrays: configurations that differ in them share
 one compiled program).
 
-Tracker (``solve.track``, ``chunk``, ``batch``):
+Tracker (``align.track``, ``chunk``, ``batch``):
 - static: ``SolveStructure`` (the number of pyramid levels);
 - traced: ``SolveKnobs`` (per-level Huber radius and gate, iterations, eta, step tolerance,
   reject limit; learnt Params override the Huber radii, eta and the weighting model).
 
-Window (``mapping.refine``, ``local_map``):
+Window (``refine.refine``, ``local_map``):
 - ``window_config(config)``: the refinement's ``MappingConfig``, the same for
-  ``mapping.refine(problem, config)`` and for the tracker's local map;
+  ``refine.refine(problem, config)`` and for the tracker's local map;
 - ``split_window`` / ``join_window``: its ``WINDOW_TRACED`` numbers (Huber radius, gate, eta)
   as arrays, the rest static.
 """
@@ -90,7 +90,7 @@ class MappingConfig(NamedTuple):
     keyframe whose pose is held fixed; fix_scale: keep the geometric mean of the inverse
     depths; step_tol: stop once a step's norm is below it; min_rho: floor of updated inverse
     depths; refine_depths, refine_intrinsics: which variables move (poses always do);
-    warmup_iterations: pose-only tries before the joint ones (see ``mapping.refine``); eta:
+    warmup_iterations: pose-only tries before the joint ones (see ``refine.refine``); eta:
     the gradient-consistency threshold (used when the problem carries gradients);
     depth_prior_sigma: standard deviation (1/m, against residuals in pixels) of a measured
     inverse depth, used when the problem carries ``rho_prior`` (0: none). An edge's

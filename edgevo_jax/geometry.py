@@ -53,7 +53,7 @@ Projection = Literal["gram_schmidt", "quaternion"] | None
 def _matmul3(A: jnp.ndarray, B: jnp.ndarray) -> jnp.ndarray:
     """A (3, 3) @ B (3, 3) or (3,) written out as products and sums in a fixed order: XLA on
     CPU fuses these into their neighbours (a dot is a kernel of its own) and rounds them the
-    same way whatever the batch size of a vmapped caller (``solve.sum_rows`` says why)."""
+    same way whatever the batch size of a vmapped caller (``align.sum_rows`` says why)."""
     if B.ndim == 1:
         return jnp.stack([A[i, 0] * B[0] + A[i, 1] * B[1] + A[i, 2] * B[2] for i in range(3)])
     return jnp.stack([jnp.stack([A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]

@@ -1,6 +1,6 @@
 """ONE Levenberg-Marquardt, with explicit state, for every least-squares loop of edgevo: the
-tracker's per-level pose solve (``solve.align_level``, a ``lax.while_loop``), the sliding
-window's joint refinement (``mapping.refine``, a ``lax.while_loop`` with a pose-only warm-up
+tracker's per-level pose solve (``align.align_level``, a ``lax.while_loop``), the sliding
+window's joint refinement (``refine.refine``, a ``lax.while_loop`` with a pose-only warm-up
 and a fixed-inlier-set acceptance) and the differentiable tracker's unrolled tries
 (``learn._align``, a ``lax.scan``).
 
@@ -123,15 +123,12 @@ class LevenbergMarquardt:
         return go if max_rejects is None else go & (state.rejects < max_rejects)
 
 
-#: The damping policy of the tracker's pose solve (``solve.pose_try``, and so of
-#: ``learn.py``'s unrolled tries): lam from 1e-4, x0.1 after a kept try, x10 after a rejected
-#: one, within [1e-6, 1e4].
+#: The damping policy of the tracker's pose solve (``align.pose_try``, and so of
+#: ``learn.differentiable``'s unrolled tries): lam from 1e-4, x0.1 after a kept try, x10
+#: after a rejected one, within [1e-6, 1e4].
 DAMPING = LevenbergMarquardt()
 
-#: The window's policy (``mapping.refine``, from ``MappingConfig.lambda_init``): the same but
-#: for a floor of 1e-7. Not one floor for both: the window's lam does go below 1e-6 and the
-#: tracker's would go below it, and either floor for both moves trajectories (float32 LM
-#: amplifies a changed lam): [1e-6, 1e4] for the window moved fr3_teddy_first200 by up to
-#: 3.2 mm (default config) and 1.1 mm (selection=all), 1e-7 for the tracker moved all six
-#: trajectories of the issue-18 set.
+#: The window's policy (``refine.refine``, from ``MappingConfig.lambda_init``): the same but
+#: for a floor of 1e-7 (both lams do reach their floors, and one floor for both moves
+#: trajectories: docs/decisions.md).
 WINDOW_DAMPING = LevenbergMarquardt(lam_min=1e-7)

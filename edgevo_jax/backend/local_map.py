@@ -5,12 +5,12 @@ On a new keyframe (``LocalMap.add_keyframe``):
 1. Window full (``window_size`` keyframes): one keyframe leaves. The newest two always stay;
    of the others, one with under ``drop_visible_ratio`` of its edges visible in the newest
    keyframe goes (the fewest first), else the one whose centre is farthest from the newest's.
-   It is marginalised (``mapping.marginalize_keyframe``: its pose and the inverse depths of
+   It is marginalised (``prior.marginalize_keyframe``: its pose and the inverse depths of
    its active edges, through the Schur complement) into the prior, and so are the active
    edges of the remaining keyframes that neither of the newest two sees (their depth block is
    diagonal, so that Schur complement is H_cc - H_cp D^-1 H_cp^T, no inverse but 1 / d).
    Linearisation: first-estimate Jacobians: a prior's H is fixed when it is made; its
-   gradient moves with the offset from that point (``mapping.prior_terms``).
+   gradient moves with the offset from that point (``prior.prior_terms``).
 2. The new keyframe joins; the tracked edges of the earlier ones are re-projected into it
    (its level-0 distance field and nearest-edge gradients): each edge seen there under the
    residual gate and with consistent gradients counts one more track, and edges are activated
@@ -18,7 +18,7 @@ On a new keyframe (``LocalMap.add_keyframe``):
    whose sensor depth is continuous across them can be activated (``depth_continuous``):
    an edge on a depth step is an occluding contour (it slides over the object when the
    camera moves) or carries the far side's depth, so no fixed point explains its residuals.
-3. With a full window: ``mapping.refine`` moves the poses, the active inverse depths and
+3. With a full window: ``refine.refine`` moves the poses, the active inverse depths and
    (``mapping_intrinsics``) the intrinsics, the oldest keyframe held fixed; each keyframe keeps
    its ``active_per_keyframe`` longest-tracked active edges in the problem (fixed shapes: one
    compilation). The tracker then continues from the refined pose of the new keyframe.
@@ -148,7 +148,7 @@ _activation_jit = full_precision(jax.jit(_activation_step, static_argnames=(
     "width", "height", "cell", "max_angle_deg")))
 
 def _refine(problem: WindowProblem, numbers, prior: Prior, *, config: MappingConfig):
-    """``mapping.refine`` with the numbers of ``derive.split_window`` traced."""
+    """``refine.refine`` with the numbers of ``derive.split_window`` traced."""
     return refine(problem, join_window(config, numbers), prior)
 
 

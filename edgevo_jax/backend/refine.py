@@ -1,6 +1,6 @@
 """Levenberg-Marquardt on the window's robust energy plus its prior (``refine``): the
 gauge, the pose-only warm-up, the fixed-inlier-set acceptance and the scale restoration
-(see ``mapping``'s module doc for the problem)."""
+(see ``window``'s module doc for the problem)."""
 
 from __future__ import annotations
 

@@ -59,7 +59,7 @@ class WindowProblem(NamedTuple):
     stacked copy); intrinsics (4,) fx, fy, cx, cy.
     Optional, for EdgeVO's gradient-consistency test (a match counts only where
     g(p) . g(p') >= eta, p' the nearest edge to the projection): grad (n, 2, A) the hosted
-    edges' normalised image gradients and edge_map each keyframe's ``interp.EdgeMap``
+    edges' normalised image gradients and edge_map each keyframe's ``preprocess.EdgeMap``
     (stacked, (n, H, W) arrays, or a tuple of n EdgeMaps; preprocess.Frame.edge_map). None:
     no such test.
     rho_prior (n, A), optional: measured inverse depths (the depth sensor's), which

@@ -151,10 +151,10 @@ def robust_system(
     """Huber-weighted normal equations of residuals r (K,) with Jacobian J (6, K) over the
     inliers ``mask``; every other ``valid`` edge costs the gate's Huber cost.
 
-    Optional (the differentiable path of ``learn.py``): ``weight`` (K,) scales each inlier's
-    Huber weight and cost; ``reject`` (K,) in [0, 1] adds that fraction of the gate's cost to
-    an inlier (a soft rejection); ``weight_slope`` (K,) is d weight / dr when the weight
-    depends on the residual, so that g stays the gradient of the cost (the term
+    Optional (the differentiable path of ``learn.differentiable``): ``weight`` (K,) scales
+    each inlier's Huber weight and cost; ``reject`` (K,) in [0, 1] adds that fraction of the
+    gate's cost to an inlier (a soft rejection); ``weight_slope`` (K,) is d weight / dr when
+    the weight depends on the residual, so that g stays the gradient of the cost (the term
     weight_slope * Huber cost joins J^T W r; H keeps the Gauss-Newton weights). Without them
     this is the plain tracker's system.
     """
@@ -286,7 +286,7 @@ def track(
 ) -> TrackResult:
     """Align keyframe edges to the frame's distance-field pyramid, coarsest level first.
 
-    dist: one field per level (H / 2**l, W / 2**l); edge_map: the frame's ``interp.EdgeMap``;
+    dist: one field per level (H / 2**l, W / 2**l); edge_map: the frame's ``preprocess.EdgeMap``;
     T_init: (4, 4) initial T_cur_kf. ``config`` (static) gives the number of levels: a
     ``derive.SolveStructure`` (``derive.solve_structure``) or a Config; the numbers are read
     from ``knobs`` (traced; default ``derive.solve_knobs(config)``, which needs a Config).

@@ -7,7 +7,7 @@ T_w_i = T_w_(i-1) T_w_(i-2)^-1 T_w_(i-1)). The frame-by-frame driver and the sca
 predict with ``predict_matrix`` (``geometry.predict``) from the same float32 inputs, so that
 they give the same trajectory: the scan is the driver's loop moved onto the device, valid
 until the host makes a decision that changes the state (a new keyframe, a loss, a recovery),
-after which the host re-tracks the rest of the chunk (``tracker.Odometry.track_chunk``).
+after which the host re-tracks the rest of the chunk (``run.track_in_chunks``).
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ def track_next(
     knobs: SolveKnobs,
     config: Config | SolveStructure,
 ) -> TrackResult:
-    """Track one frame (dist pyramid, ``interp.EdgeMap``) from the constant-velocity
+    """Track one frame (dist pyramid, ``preprocess.EdgeMap``) from the constant-velocity
     prediction of its last two keyframe-relative poses A, B (see ``predict_matrix``)."""
     return track(kf, dist, edge_map, predict_matrix(A, B), intr, config, knobs)
 

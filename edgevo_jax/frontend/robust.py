@@ -63,7 +63,7 @@ def edge_weights(
 ) -> tuple[jnp.ndarray, jnp.ndarray]:
     """The weighting model's scale (K,) of each edge at residuals r (K,) on ``level``, and
     its slope d scale / dr (K,) (the residual is one of its inputs), as
-    ``solve.robust_system`` takes them (``weight``, ``weight_slope``)."""
+    ``align.robust_system`` takes them (``weight``, ``weight_slope``)."""
 
     def scale(r):
         f = weighting_features(mag, rho, r, gate, weighting.level_feature[level],

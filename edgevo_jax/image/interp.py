@@ -7,7 +7,7 @@ The bilinear interpolant (the tracker's) is continuous but its derivative jumps 
 boundaries. The bicubic one (``bicubic_with_grad``: Catmull-Rom / Keys cubic convolution,
 a = -0.5) passes through the same pixel values and is continuously differentiable (C1) over
 the whole field, so a cost built on it has a gradient everywhere (the differentiable path's
-``interpolation="bicubic"``, ``learn.py``).
+``interpolation="bicubic"``, ``learn.differentiable``).
 """
 
 from __future__ import annotations

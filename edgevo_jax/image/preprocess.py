@@ -4,7 +4,7 @@ gray -> Gaussian blur -> Canny; Sobel gradients (their L2 magnitude is the one C
 thresholds); level-0 Euclidean distance field to the nearest edge (OpenCV's 5x5 chamfer
 approximation); levels 1..L-1 by linear downscaling of level 0 with distances rescaled to
 the level's pixels. The nearest edge's gradient (the consistency test) is found on the device
-from the distance field and a map of edge directions (``interp.EdgeMap``): a labelled
+from the distance field and a map of edge directions (``preprocess.EdgeMap``): a labelled
 distance transform would give it for every pixel, at three times the cost of the plain one.
 """
 
@@ -40,7 +40,7 @@ class Frame:
     edge_uv (N, 2) float32 pixels of the Canny edges; edge_grad (N, 2) their normalised
     image gradient; edge_mag (N,) Sobel L2 magnitude; edge_depth (N,) metres (0 = missing);
     dist: one float32 distance field per level, (H / 2**l, W / 2**l), in that level's pixels;
-    edge_map: ``interp.EdgeMap`` (level-0 field and (H, W) uint8 direction codes), from
+    edge_map: ``preprocess.EdgeMap`` (level-0 field and (H, W) uint8 direction codes), from
     which the device finds the nearest edge's gradient; depth: the (H, W) depth image in
     metres it was made from (a reference, not a copy; the local map reads it at keyframes).
     """

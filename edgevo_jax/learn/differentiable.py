@@ -2,7 +2,7 @@
 pose losses against ground truth (frame pairs, windows, chunks).
 
 ``track_differentiable`` runs the tracker's coarse-to-fine Levenberg-Marquardt
-(``solve.pose_try``: a ``solvers.LevenbergMarquardt`` try on ``solve.robust_system``) with
+(``align.pose_try``: a ``solvers.LevenbergMarquardt`` try on ``align.robust_system``) with
 the learnable parameters in place of the config's: Huber radius per level
 ``exp(log_huber[l])``, the gradient-consistency test made soft,
 sigmoid((g(p) . g(p') - eta) / tau) (``consistency="hard"`` keeps the plain tracker's
@@ -161,7 +161,7 @@ def _decisions(
     T: Pose, params: Params, data: _EdgeData, kf: KeyframeEdges,
     edge_map: jnp.ndarray, level: int, spec: _Spec,
 ) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """The hard decisions at T (as ``solve.normal_equations`` takes them): the inlier mask
+    """The hard decisions at T (as ``align.normal_equations`` takes them): the inlier mask
     and g(p) . g(p') (K,) of the nearest edges p'."""
     r, _, ok, uv_c, grad = _residuals(data.field, data.intr.at_level(level), T, data.pts_k,
                                       spec.interpolation)
@@ -182,7 +182,7 @@ def _settles(old: LevelSystem, new: LevelSystem) -> jnp.ndarray:
 
 
 def _lm_try(system_at, state: LMState, settle: bool) -> LMState:
-    """``solve.pose_try``, with ``_settles`` as the acceptance test when ``settle``."""
+    """``align.pose_try``, with ``_settles`` as the acceptance test when ``settle``."""
     return pose_try(system_at, state, _settles) if settle else pose_try(system_at, state)
 
 
@@ -191,7 +191,7 @@ def _align(
     settle: bool = False,
 ) -> tuple[Pose, LevelSystem]:
     """``iterations`` LM tries (a scan: reverse-differentiable), frozen once
-    ``solve.pose_continues`` says stop (what ``solve.align_level``'s while loop does)."""
+    ``align.pose_continues`` says stop (what ``align.align_level``'s while loop does)."""
 
     def body(carry, _):
         state, active = carry
@@ -307,7 +307,7 @@ def track_differentiable(
     refine: int = 0,
     checkpoint: bool = False,
 ) -> TrackResult:
-    """``solve.track`` with learnable ``params``, differentiable w.r.t. them (and the float
+    """``align.track`` with learnable ``params``, differentiable w.r.t. them (and the float
     inputs) through ``adjoint`` ("unrolled" or "implicit", see the module docstring).
 
     mag (K,): gradient magnitude of each keyframe edge for the weighting model (default

@@ -8,7 +8,7 @@ paper's ``a``) and the per-edge weighting model outputs exactly 1 for every edge
   a log value keeps the radius positive under gradient steps.
 - ``eta``: the gradient-consistency margin (g(p) . g(p') >= eta, paper: 0.6).
 - ``log_temperature``: log of the temperature tau of the soft consistency weight
-  sigmoid((g(p) . g(p') - eta) / tau) used by the differentiable path (``learn.py``) in
+  sigmoid((g(p) . g(p') - eta) / tau) used by the differentiable path (``learn.differentiable``) in
   place of the hard test; tau -> 0 gives the hard test back.
 - ``reobs_a``: the offset of the re-observation probability 1 / (1 + exp(a - m_e)). It only
   enters edge selection (``learn.selection_scores``), never the alignment.
@@ -85,7 +85,7 @@ def weighting_of(params: Params, config: Config) -> EdgeWeighting:
 
 def solve_knobs_of(params: Params, config: Config) -> SolveKnobs:
     """The plain tracker's ``SolveKnobs`` with the numbers of ``params`` (host side, numpy
-    float32, for ``tracker.Odometry(..., params=...)``): Huber radius exp(log_huber) per
+    float32, for ``odometry.Odometry(..., params=...)``): Huber radius exp(log_huber) per
     level, consistency threshold eta, and the weighting model when it is not the identity
     (any of weight_w, weight_b nonzero; otherwise ``weighting`` stays None and the solve
     compiles to the program of ``derive.solve_knobs(config)``: ``Params.default(config)``

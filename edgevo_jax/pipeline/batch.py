@@ -75,7 +75,7 @@ class BatchRun(FrameResults):
     num_keyframes: int = 0
 
     def summary_fields(self) -> dict:
-        """The run's own fields for ``runner.summarise``: its configuration's index."""
+        """The run's own fields for ``run.summarise``: its configuration's index."""
         return {"config_index": self.config_index}
 
 

@@ -61,7 +61,7 @@ class FrameResult:
 class FrameResults:
     """Mixin for a run's ``results`` (list of FrameResult): its timestamps and poses; a run
     also has ``config`` and ``num_keyframes``, and ``summary_fields`` (its own statistics
-    for ``runner.summarise``)."""
+    for ``run.summarise``)."""
 
     results: list[FrameResult]
     config: Config | None
@@ -205,9 +205,9 @@ class Odometry:
 
     def solve_inputs(self) -> tuple[KeyframeEdges, np.ndarray, np.ndarray, Intrinsics, object]:
         """What a solve of the next frames needs besides the frames, for solves made
-        elsewhere (``runner.track_in_chunks``, ``batch.evaluate``) and concluded by
+        elsewhere (``run.track_in_chunks``, ``batch.evaluate``) and concluded by
         ``accept``: the keyframe's edges, A = T_(i-1)_kf and B = T_(i-2)_kf (float32, the
-        constant-velocity prediction's inputs, ``chunk.predict``), the intrinsics and the
+        constant-velocity prediction's inputs, ``chunk.predict_matrix``), the intrinsics and the
         solve's numbers. RuntimeError before the first keyframe."""
         if self._kf is None:
             raise RuntimeError("no keyframe yet: track the first frame with track_frame")

@@ -110,7 +110,7 @@ def run_sequence(
 ) -> RunResult:
     """Track every associated frame of ``seq``; write the TUM trajectory to ``out`` line by
     line (flushed; renamed into place at the end). Returns the per-frame results.
-    ``params``: learnt parameters for the tracker (``tracker.Odometry``; None: the config's)."""
+    ``params``: learnt parameters for the tracker (``odometry.Odometry``; None: the config's)."""
     odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq), params=params)
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
     run = RunResult(config=config)
