@@ -340,3 +340,16 @@ def test_subsequence_is_a_slice_of_the_frames():
     assert len(subsequence(seq, 5, 100)) == len(seq) - 5  # clipped to the sequence
     with pytest.raises(ValueError, match="no frames"):
         subsequence(seq, 7, 7)
+
+
+def test_subsequence_with_a_step_lowers_the_frame_rate():
+    from edgevo_jax.cli import BUNDLED_CLIP
+
+    seq = load_sequence(BUNDLED_CLIP)
+    every2 = subsequence(seq, 0, len(seq), step=2)
+    assert len(every2) == (len(seq) + 1) // 2 and every2.name.endswith("_every2")
+    np.testing.assert_array_equal(every2.timestamps, seq.timestamps[::2])
+    assert every2.depth_files == seq.depth_files[::2]
+    np.testing.assert_array_equal(every2.load_frame(1)[1], seq.load_frame(2)[1])
+    with pytest.raises(ValueError, match="step must be a positive integer"):
+        subsequence(seq, 0, 5, step=0)

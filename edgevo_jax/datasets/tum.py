@@ -312,17 +312,22 @@ class TumSequence:
         return rgb, depth
 
 
-def subsequence(seq: TumSequence, start: int, stop: int) -> TumSequence:
-    """Frames ``start`` to ``stop`` - 1 of ``seq`` (its associated pairs; clipped to its
-    length) as a sequence of their own, with the same camera and ground truth (metrics
-    associate by time). Nothing is copied: the frames are read from the same files."""
+def subsequence(seq: TumSequence, start: int, stop: int, *, step: int = 1) -> TumSequence:
+    """Frames ``start``, ``start + step``, ... below ``stop`` of ``seq`` (its associated pairs;
+    clipped to its length) as a sequence of their own, with the same camera and ground truth
+    (metrics associate by time). ``step`` k > 1 gives the sequence at 1/k of its frame rate,
+    as keeping every k-th line of rgb.txt and depth.txt does. Nothing is copied: the frames
+    are read from the same files."""
+    if step < 1:
+        raise ValueError(f"step must be a positive integer, got {step}")
     n = len(seq)
     start, stop = max(0, min(start, n)), max(0, min(stop, n))
     if start >= stop:
         raise ValueError(f"no frames in {start}:{stop} of {seq.name} ({n} frames)")
-    part = slice(start, stop)
+    part = slice(start, stop, step)
+    name = f"{seq.name}_frames{start}-{stop}" + (f"_every{step}" if step > 1 else "")
     return dataclasses.replace(
-        seq, name=f"{seq.name}_frames{start}-{stop}", timestamps=seq.timestamps[part],
+        seq, name=name, timestamps=seq.timestamps[part],
         rgb_files=seq.rgb_files[part], depth_files=seq.depth_files[part])
 
 
