@@ -51,7 +51,8 @@ class RunResult(FrameResults):
     config: Config | None = None
 
     def summary_fields(self) -> dict:
-        """Timing statistics for ``summarise``. ms_per_frame covers warm frames: from the
+        """Timing statistics and the per-frame record (``per_frame_record``) for
+        ``summarise``. ms_per_frame covers warm frames: from the
         third on (the first only becomes the keyframe, the second compiles), image decoding
         excluded; select_ms covers every keyframe but the first (whose selection compiles);
         mapping_ms every keyframe after the first window_size + 1 (activation, refinement
@@ -73,7 +74,17 @@ class RunResult(FrameResults):
         }
         if self.stopped_at is not None:
             out["stopped_at_frame"] = self.stopped_at
+        out["per_frame"] = [per_frame_record(r) for r in self.results]
         return out
+
+
+def per_frame_record(result: FrameResult) -> dict:
+    """One frame of the ``--stats`` JSON's ``per_frame`` list (one per trajectory line, in
+    order): timestamp (s), state (OK / WEAK / LOST), reason (None when OK), level-0 inliers,
+    keyframe (why the frame became one, or None) and the keyframe edges it was tracked with."""
+    return {"timestamp": result.timestamp, "state": result.state, "reason": result.reason,
+            "inliers": result.inliers, "keyframe": result.keyframe,
+            "edges_used": result.edges_used}
 
 
 def enable_compilation_cache() -> str | None:

@@ -108,6 +108,12 @@ def test_cli_run_writes_trajectory_and_stats(tmp_path, capsys):
     lines = out.read_text().splitlines()
     assert len(lines) == stats["frames"] == 9
     assert all(len(line.split()) == 8 for line in lines)
+    per_frame = stats["per_frame"]  # one record per trajectory line, in order
+    assert [f"{r['timestamp']:.6f}" for r in per_frame] == [line.split()[0] for line in lines]
+    assert {r["state"] for r in per_frame} <= {"OK", "WEAK", "LOST"}
+    assert per_frame[0]["keyframe"] == "first" and per_frame[0]["inliers"] == 0
+    assert sum(r["keyframe"] is not None for r in per_frame) == stats["keyframes"]
+    assert all(r["inliers"] > 0 for r in per_frame[1:] if r["state"] == "OK")
     assert "ATE RMSE" in capsys.readouterr().out
     gt = BUNDLED_CLIP / "groundtruth.txt"
     assert main(["eval", str(gt), str(out), "--json"]) == 0
