@@ -31,6 +31,9 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--max-frames", type=int, default=None, help="stop after this many frames")
     run.add_argument("--depth-factor", type=float, default=5000.0,
                      help="depth PNG units per metre (TUM: 5000)")
+    run.add_argument("--frame-step", type=int, default=1, metavar="K",
+                     help="keep every K-th line of rgb.txt and depth.txt (1/K of the frame "
+                          "rate)")
     run.add_argument("--intrinsics", type=float, nargs=4, default=None,
                      metavar=("FX", "FY", "CX", "CY"),
                      help="override the camera (then no undistortion is applied)")
@@ -142,7 +145,7 @@ def _run(args: argparse.Namespace) -> int:
     params = _read_params(args.params, config) if args.params is not None else None
     enable_compilation_cache()
     path = args.sequence if args.sequence is not None else BUNDLED_CLIP
-    kwargs = {"depth_factor": args.depth_factor}
+    kwargs = {"depth_factor": args.depth_factor, "frame_step": args.frame_step}
     if args.intrinsics is not None:
         kwargs["intrinsics"] = Intrinsics(*args.intrinsics)
     seq = load_sequence(path, **kwargs)

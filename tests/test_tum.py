@@ -353,3 +353,30 @@ def test_subsequence_with_a_step_lowers_the_frame_rate():
     np.testing.assert_array_equal(every2.load_frame(1)[1], seq.load_frame(2)[1])
     with pytest.raises(ValueError, match="step must be a positive integer"):
         subsequence(seq, 0, 5, step=0)
+
+
+def test_frame_step_keeps_every_kth_line_before_associating(tmp_path):
+    """As a benchmark list at 1/k of the frame rate would be: every k-th line of rgb.txt and
+    of depth.txt, then association (where the lists have gaps, pairs drop out)."""
+    from edgevo_jax.cli import BUNDLED_CLIP
+
+    full = load_sequence(BUNDLED_CLIP)
+    every2 = load_sequence(BUNDLED_CLIP, frame_step=2)
+    assert every2.name == f"{full.name}_every2" and every2.intrinsics == full.intrinsics
+    rgb_t, _ = read_file_list(BUNDLED_CLIP / "rgb.txt")
+    depth_t, _ = read_file_list(BUNDLED_CLIP / "depth.txt")
+    kept = set(np.round(rgb_t[::2], 6)) & set(np.round(every2.timestamps, 6))
+    assert len(kept) == len(every2) and 0 < len(every2) < len(full)
+    # a gap in depth.txt shifts which depth lines are kept: those frames drop out
+    root = tmp_path / "rgbd_dataset_freiburg1_xyz_gap"
+    root.mkdir()
+    for name in ("rgb", "depth"):
+        (root / name).symlink_to(BUNDLED_CLIP / name)
+    (root / "rgb.txt").write_text((BUNDLED_CLIP / "rgb.txt").read_text())
+    depth_lines = (BUNDLED_CLIP / "depth.txt").read_text().splitlines(keepends=True)
+    first = next(i for i, line in enumerate(depth_lines) if not line.startswith("#"))
+    (root / "depth.txt").write_text("".join(depth_lines[:first] + depth_lines[first + 1:]))
+    shifted = load_sequence(root, frame_step=2)
+    assert len(shifted) < len(load_sequence(root))
+    with pytest.raises(ValueError, match="frame_step must be a positive integer"):
+        load_sequence(BUNDLED_CLIP, frame_step=0)

@@ -315,9 +315,11 @@ class TumSequence:
 def subsequence(seq: TumSequence, start: int, stop: int, *, step: int = 1) -> TumSequence:
     """Frames ``start``, ``start + step``, ... below ``stop`` of ``seq`` (its associated pairs;
     clipped to its length) as a sequence of their own, with the same camera and ground truth
-    (metrics associate by time). ``step`` k > 1 gives the sequence at 1/k of its frame rate,
-    as keeping every k-th line of rgb.txt and depth.txt does. Nothing is copied: the frames
-    are read from the same files."""
+    (metrics associate by time). ``step`` strides over the associated pairs; to lower the
+    frame rate as the benchmark's lists would, use ``load_sequence(..., frame_step=k)``,
+    which keeps every k-th line of rgb.txt and depth.txt before associating them (where the
+    lists have gaps, the two differ). Nothing is copied: the frames are read from the same
+    files."""
     if step < 1:
         raise ValueError(f"step must be a positive integer, got {step}")
     n = len(seq)
@@ -339,8 +341,14 @@ def load_sequence(
     depth_factor: float = 5000.0,
     max_diff: float = 0.02,
     check_images: bool = True,
+    frame_step: int = 1,
 ) -> TumSequence:
     """Load a TUM RGB-D sequence folder, associating rgb and depth like ``associate.py``.
+
+    ``frame_step`` k > 1 keeps every k-th line of rgb.txt and of depth.txt before they are
+    associated (the sequence at 1/k of its frame rate, as the benchmark's lists would be
+    recorded; where the lists have gaps, pairs that no longer associate are dropped, so the
+    motion between tracked frames can span more than k frames). The name gets ``_everyk``.
 
     Intrinsics come from the folder name (``camera_from_name``) unless given. ``distortion``
     defaults to the folder name's camera, or to None when ``intrinsics`` are given. Ground
@@ -380,8 +388,14 @@ def load_sequence(
                 f"distortion must be 4, 5, 8, 12 or 14 finite OpenCV coefficients, got {dist}"
             )
 
+    if not (isinstance(frame_step, int) and frame_step >= 1):
+        raise ValueError(f"frame_step must be a positive integer, got {frame_step!r}")
     rgb_t, rgb_rel = read_file_list(root / "rgb.txt")
     depth_t, depth_rel = read_file_list(root / "depth.txt")
+    if frame_step > 1:
+        rgb_t, rgb_rel = rgb_t[::frame_step], rgb_rel[::frame_step]
+        depth_t, depth_rel = depth_t[::frame_step], depth_rel[::frame_step]
+        name = f"{name}_every{frame_step}"
     pairs = associate_timestamps(rgb_t, depth_t, max_diff)
     if pairs.shape[0] == 0:
         raise ValueError(
