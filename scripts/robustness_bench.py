@@ -362,7 +362,8 @@ def plot(rows: Sequence[dict[str, Any]], path: Path) -> Path | None:
             ax_ate.errorbar(k, mean, yerr=[lo, hi], marker="o", capsize=3, label=label)
             ax_div.plot(k, [r["diverged_mean"] for r in rs], marker="o", label=method)
         ax_ate.set(xlabel="frame step k (every k-th frame)", ylabel="ATE RMSE (mm)",
-                   yscale="log", title=f"{seq}: ATE (mean, min-max over seeds)")
+                   yscale="log",
+                   title=f"{seq.removeprefix('rgbd_dataset_')}: ATE (mean, min-max over seeds)")
         ax_div.set(xlabel="frame step k", ylabel="silently diverged frames per run",
                    title="OK frames off by > 5 cm or > 3 deg")
         for ax in (ax_ate, ax_div):
