@@ -1,0 +1,462 @@
+"""Robustness of tracking to the frame rate: a measuring stick for issue 19.
+
+Usage::
+
+    python scripts/robustness_bench.py [SEQ_DIR ...] [--steps 1,2,3,5] [--seeds 0-4]
+                                       [--peers cv2_rgb,cv2_rgbd] [--max-frames N]
+                                       [--out-json docs/robustness/robustness.json]
+                                       [--out-md docs/robustness/robustness.md]
+                                       [--out-png docs/robustness/robustness.png]
+
+For every sequence (default: fr3_teddy's first 200 frames) and frame step k, the sequence is
+played at 1/k of its frame rate (every k-th associated rgb/depth pair,
+``datasets.subsequence(seq, 0, len(seq), step=k)``; ``--max-frames`` cuts the sequence
+first) and tracked
+
+- by edgevo_jax in this process (``run_sequence``, the default ``Config`` but for the
+  selection seed: one run per ``--seeds`` seed; the first run of the process is preceded by
+  an untimed warm-up run on ``--warmup-frames`` frames, so that every timed run finds the
+  tracker's and the window's programs compiled), and
+- by each ``--peers`` method of ``scripts/bench.py`` (its ``make_peer`` and ``track_peer``:
+  frame to frame from edgevo's first pose; deterministic, so one run per k).
+
+Per run: ATE RMSE (m, ``metrics.ate``), RPE (``metrics.rpe`` over 1 s: m/s and deg/s; null
+when the clip spans under 1 s), the frames per state (edgevo: OK / WEAK / LOST; peers: a
+pair whose ``compute`` fails is LOST, every other frame OK), the **silently diverged**
+frames (:func:`diverged_frames`) and the mean / median ms per frame over warm frames (the
+first two skipped; image decoding excluded, as in bench.py). Per (sequence, method, k) over
+the seeds: mean, min and max ATE and max / min. Writes JSON (with machine information and
+the command line), a markdown table and a plot of ATE against the frame step (skipped with a
+note when matplotlib is missing); prints one progress line per run and the table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shlex
+import sys
+import warnings
+from collections import Counter
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import bench  # scripts/bench.py: scripts/ is sys.path[0] when this script runs
+import numpy as np
+
+from edgevo_jax import Config, enable_batch_exact
+from edgevo_jax.datasets import groundtruth_pose_at, load_sequence, subsequence
+from edgevo_jax.datasets.tum import SHARED_TUM, EmptyDepthWarning, TumSequence
+from edgevo_jax.geometry import inverse_np, rotation_angle_np
+from edgevo_jax.io import json_safe, matrices_to_poses7, poses7_to_matrices
+from edgevo_jax.metrics import ate, rpe
+from edgevo_jax.provenance import machine_info
+
+DEFAULT_SEQUENCE = SHARED_TUM / "rgbd_dataset_freiburg3_teddy_first200"
+DEFAULT_OUT = Path("docs/robustness")
+DEFAULT_PEERS = ("cv2_rgb", "cv2_rgbd")
+EDGEVO = "edgevo"
+STATES = ("OK", "WEAK", "LOST")
+DIVERGED_TRANS_M = 0.05
+DIVERGED_ROT_DEG = 3.0
+GT_MAX_DIFF_S = 0.02  # as the ATE's association
+WARM_SKIP = bench.WARMUP_FRAMES  # frame 0 sets up, frame 1 is the first pair
+DIVERGED_NOTE = (
+    "diverged: frames the method called OK, following a frame it also called OK, whose "
+    f"motion from that frame differs from the ground truth's over the same timestamps by more "
+    f"than {DIVERGED_TRANS_M * 100:.0f} cm or {DIVERGED_ROT_DEG:.0f} deg (ground truth nearest "
+    f"within {GT_MAX_DIFF_S} s of each frame)"
+)
+
+
+# --------------------------------------------------------------------------------------------
+# the per-run core: pure functions of poses, states, timestamps and ground truth
+
+
+def parse_int_list(spec: str) -> list[int]:
+    """``"0-4"``, ``"0,1,2"`` or a mix (``"0-2,5"``) -> the integers in order, duplicates
+    dropped. ValueError for an empty list, a malformed item or a decreasing range."""
+    out: list[int] = []
+    for item in (s.strip() for s in spec.split(",")):
+        if not item:
+            continue
+        lo, sep, hi = item.partition("-")
+        try:
+            a, b = (int(lo), int(hi)) if sep else (int(item), int(item))
+        except ValueError:
+            raise ValueError(f"expected integers like 0-4 or 0,1,2, got {spec!r}") from None
+        if b < a:
+            raise ValueError(f"decreasing range {item!r} in {spec!r}")
+        out.extend(v for v in range(a, b + 1) if v not in out)
+    if not out:
+        raise ValueError(f"no integers in {spec!r}")
+    return out
+
+
+def groundtruth_at(seq: TumSequence, timestamps: np.ndarray,
+                   max_diff: float = GT_MAX_DIFF_S) -> np.ndarray:
+    """Ground-truth T_world_cam (N, 4, 4) at each timestamp: the pose nearest in time
+    (``datasets.groundtruth_pose_at``), all NaN where none lies within ``max_diff`` s or the
+    sequence has no ground truth."""
+    out = np.full((len(timestamps), 4, 4), np.nan)
+    for i, t in enumerate(np.asarray(timestamps, np.float64)):
+        pose7 = groundtruth_pose_at(seq, float(t), max_diff)
+        if pose7 is not None:
+            out[i] = poses7_to_matrices(np.asarray(pose7)[None])[0]
+    return out
+
+
+def motion_errors(poses: np.ndarray, gt_poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each frame i >= 1, the error of the estimated motion from frame i-1 against the
+    ground truth's: E = (G_{i-1}^-1 G_i)^-1 (P_{i-1}^-1 P_i); returns (|trans(E)| in m,
+    angle(E) in degrees), each of length N - 1 (NaN where a ground-truth pose is NaN)."""
+    p = np.asarray(poses, np.float64)
+    g = np.asarray(gt_poses, np.float64)
+    if p.shape != g.shape or p.ndim != 3 or p.shape[1:] != (4, 4):
+        raise ValueError(f"poses {p.shape} and gt_poses {g.shape} must both be (N, 4, 4)")
+    if p.shape[0] < 2:
+        return np.zeros(0), np.zeros(0)
+    rel_est = inverse_np(p[:-1]) @ p[1:]
+    rel_gt = inverse_np(g[:-1]) @ g[1:]
+    e = inverse_np(rel_gt) @ rel_est
+    trans = np.linalg.norm(e[:, :3, 3], axis=-1)
+    rot = np.degrees(np.asarray(rotation_angle_np(e), np.float64).reshape(-1))
+    return trans, rot
+
+
+def diverged_frames(poses: np.ndarray, states: Sequence[str], gt_poses: np.ndarray, *,
+                    trans_m: float = DIVERGED_TRANS_M, rot_deg: float = DIVERGED_ROT_DEG
+                    ) -> list[int]:
+    """Indices of the silently diverged frames of a run.
+
+    ``poses`` (N, 4, 4) are the run's T_world_cam in frame order, ``states`` its N states
+    (``"OK"``, ``"WEAK"``, ``"LOST"``) and ``gt_poses`` (N, 4, 4) the ground truth at the
+    same frames' timestamps (NaN where unknown: :func:`groundtruth_at`). Frame i >= 1 is
+    diverged when it and the frame before it (the previous frame the method tracked) are
+    both OK and its motion from that frame differs from the ground truth's motion between
+    the same timestamps by more than ``trans_m`` metres or ``rot_deg`` degrees. A motion into
+    or out of a WEAK or LOST frame is not judged: the method flagged it, so any jump there
+    is not silent. Frames without ground truth on either side are not judged."""
+    if len(states) != len(poses):
+        raise ValueError(f"{len(states)} states for {len(poses)} poses")
+    trans, rot = motion_errors(poses, gt_poses)
+    out = []
+    for i in range(1, len(states)):
+        if states[i] != "OK" or states[i - 1] != "OK":
+            continue
+        t, r = trans[i - 1], rot[i - 1]
+        if math.isfinite(t) and math.isfinite(r) and (t > trans_m or r > rot_deg):
+            out.append(i)
+    return out
+
+
+def score_run(timestamps: np.ndarray, poses: np.ndarray, states: Sequence[str],
+              frame_ms: Sequence[float], groundtruth: tuple[np.ndarray, np.ndarray] | None,
+              gt_poses: np.ndarray) -> dict[str, Any]:
+    """The measurements of one run (timestamps (N,), T_world_cam poses (N, 4, 4), states,
+    per-frame ms) against the ground truth trajectory ``(gt_t, gt_poses7)`` and
+    ``gt_poses`` at the frames (:func:`groundtruth_at`): ATE RMSE (m), RPE over 1 s
+    (``rpe_m_per_s``, ``rpe_deg_per_s``; NaN when the clip spans under 1 s), counts per state,
+    the diverged frames (:func:`diverged_frames`) and the warm mean / median ms per frame
+    (the first ``WARM_SKIP`` frames skipped). Accuracy fields are NaN without ground truth,
+    with an ``accuracy_note`` saying why."""
+    ts = np.asarray(timestamps, np.float64)
+    counts = Counter(states)
+    unknown = set(counts) - set(STATES)
+    if unknown:
+        raise ValueError(f"unknown states {sorted(unknown)} (expected {STATES})")
+    warm = np.asarray(frame_ms[WARM_SKIP:], np.float64)
+    div = diverged_frames(poses, states, gt_poses)
+    out: dict[str, Any] = {
+        "frames": len(states),
+        **{s.lower(): int(counts.get(s, 0)) for s in STATES},
+        "diverged": len(div),
+        "diverged_frames": div,
+        "ate_rmse_m": math.nan, "rpe_m_per_s": math.nan, "rpe_deg_per_s": math.nan,
+        "mean_ms": float(warm.mean()) if warm.size else math.nan,
+        "median_ms": float(np.median(warm)) if warm.size else math.nan,
+    }
+    if groundtruth is None:
+        out["accuracy_note"] = "no ground truth"
+        return out
+    est = matrices_to_poses7(np.asarray(poses, np.float64))
+    try:
+        out["ate_rmse_m"] = float(ate(*groundtruth, ts, est)["rmse"])
+        if ts.size and ts[-1] - ts[0] >= 1.0:
+            r = rpe(*groundtruth, ts, est)
+            out["rpe_m_per_s"] = float(r["trans_rmse_m_per_s"])
+            out["rpe_deg_per_s"] = float(r["rot_rmse_deg_per_s"])
+        else:
+            out["accuracy_note"] = "RPE n/a: clip shorter than 1 s"
+    except ValueError as err:  # e.g. fewer than 3 poses associated with the ground truth
+        out["accuracy_note"] = str(err)
+    return out
+
+
+def aggregate(runs: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per (sequence, method, step) over its runs (the seeds): mean / min / max ATE,
+    max / min, mean RPE, mean diverged / weak / lost frames per run and the median of the
+    runs' median ms. Rows keep the order in which their first run appears; runs with
+    ``missing`` set are skipped."""
+    groups: dict[tuple[str, str, int], list[dict[str, Any]]] = {}
+    for r in runs:
+        if "missing" not in r:
+            groups.setdefault((r["sequence"], r["method"], r["step"]), []).append(r)
+    rows = []
+    for (seq, method, step), rs in groups.items():
+        ates = np.array([r["ate_rmse_m"] for r in rs], np.float64)
+        ok = ates[np.isfinite(ates)]
+
+        def mean(key: str, rs: list[dict[str, Any]] = rs) -> float:
+            v = np.array([r[key] for r in rs], np.float64)
+            v = v[np.isfinite(v)]
+            return float(v.mean()) if v.size else math.nan
+
+        rows.append({
+            "sequence": seq, "method": method, "step": step, "runs": len(rs),
+            "seeds": [r["seed"] for r in rs if r.get("seed") is not None],
+            "frames": rs[0]["frames"],
+            "ate_mean_m": float(ok.mean()) if ok.size else math.nan,
+            "ate_min_m": float(ok.min()) if ok.size else math.nan,
+            "ate_max_m": float(ok.max()) if ok.size else math.nan,
+            "ate_max_over_min": float(ok.max() / ok.min()) if ok.size and ok.min() > 0
+            else math.nan,
+            "rpe_m_per_s_mean": mean("rpe_m_per_s"),
+            "rpe_deg_per_s_mean": mean("rpe_deg_per_s"),
+            "diverged_mean": mean("diverged"), "diverged_max": max(r["diverged"] for r in rs),
+            "weak_mean": mean("weak"), "lost_mean": mean("lost"),
+            "median_ms": float(np.median([r["median_ms"] for r in rs])),
+            "mean_ms": mean("mean_ms"),
+        })
+    return rows
+
+
+def _fmt(v: Any, spec: str) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "n/a"
+    return format(v, spec)
+
+
+def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
+    """The aggregate rows as a markdown table."""
+    lines = ["| sequence | method | step k | frames | runs | ATE mean (mm) | min | max "
+             "| max/min | RPE (mm/s) | RPE (deg/s) | diverged / run (max) | weak / run "
+             "| lost / run | ms median | ms mean |", "|" + "---|" * 16]
+    for r in rows:
+        lines.append("| " + " | ".join([
+            r["sequence"], r["method"], str(r["step"]), str(r["frames"]), str(r["runs"]),
+            _fmt(1e3 * r["ate_mean_m"], ".2f"), _fmt(1e3 * r["ate_min_m"], ".2f"),
+            _fmt(1e3 * r["ate_max_m"], ".2f"), _fmt(r["ate_max_over_min"], ".2f"),
+            _fmt(1e3 * r["rpe_m_per_s_mean"], ".1f"), _fmt(r["rpe_deg_per_s_mean"], ".2f"),
+            f"{_fmt(r['diverged_mean'], '.1f')} ({r['diverged_max']})",
+            _fmt(r["weak_mean"], ".1f"), _fmt(r["lost_mean"], ".1f"),
+            _fmt(r["median_ms"], ".1f"), _fmt(r["mean_ms"], ".1f")]) + " |")
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------------
+# running (the tracker and the peers)
+
+
+class _RecordingPeer:
+    """A bench.py peer that also records, per frame after the first, whether it returned a
+    usable motion (what ``bench.track_peer`` counts as not lost)."""
+
+    def __init__(self, peer: bench.PeerTracker) -> None:
+        self._peer = peer
+        self.description = peer.description
+        self.usable: list[bool] = []
+
+    def step(self, rgb: np.ndarray, depth: np.ndarray) -> np.ndarray | None:
+        """The wrapped peer's ``step``; records the outcome (an exception: not usable)."""
+        self.usable.append(False)
+        rt = self._peer.step(rgb, depth)
+        if rt is not None:
+            m = np.asarray(rt, np.float64)
+            self.usable[-1] = m.shape == (4, 4) and bool(np.all(np.isfinite(m)))
+        return rt
+
+
+def run_peer(method: str, seq: TumSequence) -> dict[str, Any]:
+    """Track ``seq`` with the bench.py peer ``method``; frame 0 and every frame with a usable
+    motion are OK, the others LOST (their pose repeats the previous motion). Returns the
+    scored run, or ``{"missing": reason}``."""
+    from edgevo_jax.pipeline.run import initial_pose
+
+    try:
+        peer = _RecordingPeer(bench.make_peer(method, seq.intrinsics, seq.width, seq.height))
+    except bench.PeerMissing as err:
+        return {"missing": str(err)}
+    track = bench.track_peer(peer, seq, len(seq), initial_pose(seq))
+    states = ["OK"] + ["OK" if u else "LOST" for u in peer.usable[1:]]
+    ts = np.asarray(seq.timestamps, np.float64)
+    poses = np.asarray(track.poses).reshape(-1, 4, 4)
+    out = score_run(ts, poses, states, track.frame_ms, seq.groundtruth, groundtruth_at(seq, ts))
+    out["api"] = peer.description
+    if track.failures:
+        out["failures"] = track.failures
+    return out
+
+
+def run_edgevo(seq: TumSequence, seed: int) -> dict[str, Any]:
+    """Track ``seq`` with edgevo_jax, ``Config(seed=seed)``; the scored run plus keyframes."""
+    from edgevo_jax.pipeline.run import run_sequence
+
+    with warnings.catch_warnings():  # a depthless frame is a WEAK frame, not a failure
+        warnings.simplefilter("ignore", EmptyDepthWarning)
+        run = run_sequence(seq, Config(seed=seed), progress=False)
+    states = [r.state for r in run.results]
+    out = score_run(run.timestamps, run.poses, states, run.frame_ms, seq.groundtruth,
+                    groundtruth_at(seq, run.timestamps))
+    out["keyframes"] = int(run.num_keyframes)
+    return out
+
+
+def warm_up(seq: TumSequence, frames: int) -> None:
+    """An untimed edgevo run on the first ``frames`` frames, so that the timed runs find the
+    programs compiled (the window's compile when it first fills and marginalises)."""
+    from edgevo_jax.pipeline.run import run_sequence
+
+    if frames > 0:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", EmptyDepthWarning)
+            run_sequence(seq, Config(), progress=False, max_frames=frames)
+
+
+def _progress(run: dict[str, Any]) -> str:
+    if "missing" in run:
+        return f"{run['sequence']} k={run['step']} {run['method']}: missing ({run['missing']})"
+    seed = f" seed {run['seed']}" if run.get("seed") is not None else ""
+    return (f"{run['sequence']} k={run['step']} {run['method']}{seed}: "
+            f"ATE {_fmt(1e3 * run['ate_rmse_m'], '.2f')} mm, {run['frames']} frames, "
+            f"weak {run['weak']}, lost {run['lost']}, diverged {run['diverged']}, "
+            f"{_fmt(run['median_ms'], '.1f')} ms median")
+
+
+def plot(rows: Sequence[dict[str, Any]], path: Path) -> Path | None:
+    """ATE (mean over seeds, min-max bars) and diverged frames per run against the frame
+    step, one line per method, a row of two panels per sequence; None (and a printed note)
+    when matplotlib is missing."""
+    from edgevo_jax.viz._canvas import figure, require_matplotlib, save
+
+    try:
+        require_matplotlib()
+    except ImportError as err:
+        print(f"note: no plot ({err})", flush=True)
+        return None
+    seqs = list(dict.fromkeys(r["sequence"] for r in rows))
+    fig = figure((10, 3.6 * len(seqs)), layout="constrained")
+    axes = fig.subplots(len(seqs), 2, squeeze=False)
+    for (ax_ate, ax_div), seq in zip(axes, seqs, strict=True):
+        mine = [r for r in rows if r["sequence"] == seq]
+        for method in dict.fromkeys(r["method"] for r in mine):
+            rs = sorted((r for r in mine if r["method"] == method), key=lambda r: r["step"])
+            k = np.array([r["step"] for r in rs])
+            mean = 1e3 * np.array([r["ate_mean_m"] for r in rs])
+            lo = mean - 1e3 * np.array([r["ate_min_m"] for r in rs])
+            hi = 1e3 * np.array([r["ate_max_m"] for r in rs]) - mean
+            label = f"{method} ({rs[0]['runs']} seeds)" if rs[0]["runs"] > 1 else method
+            ax_ate.errorbar(k, mean, yerr=[lo, hi], marker="o", capsize=3, label=label)
+            ax_div.plot(k, [r["diverged_mean"] for r in rs], marker="o", label=method)
+        ax_ate.set(xlabel="frame step k (every k-th frame)", ylabel="ATE RMSE (mm)",
+                   yscale="log",
+                   title=f"{seq.removeprefix('rgbd_dataset_')}: ATE (mean, min-max over seeds)")
+        ax_div.set(xlabel="frame step k", ylabel="silently diverged frames per run",
+                   title="OK frames off by > 5 cm or > 3 deg")
+        for ax in (ax_ate, ax_div):
+            ax.set_xticks(sorted({r["step"] for r in mine}))
+            ax.grid(alpha=0.3)
+        ax_ate.legend(fontsize=8)
+    return save(fig, path)
+
+
+def run_all(seq_dirs: Sequence[Path], steps: Sequence[int], seeds: Sequence[int],
+            peers: Sequence[str], max_frames: int | None, warmup_frames: int
+            ) -> list[dict[str, Any]]:
+    """Every run, in order: per sequence and step, edgevo per seed, then each peer. Prints a
+    progress line per run."""
+    runs: list[dict[str, Any]] = []
+    warmed = False
+    for seq_dir in seq_dirs:
+        full = load_sequence(seq_dir)
+        if max_frames is not None:
+            full = subsequence(full, 0, max_frames)
+        if not warmed:
+            warm_up(full, warmup_frames)
+            warmed = True
+        for k in steps:
+            seq = subsequence(full, 0, len(full), step=k)
+            base = {"sequence": full.name, "step": k, "path": str(seq_dir)}
+            jobs: list[tuple[str, int | None]] = [(EDGEVO, s) for s in seeds]
+            jobs += [(p, None) for p in peers]
+            for method, seed in jobs:
+                row = {**base, "method": method, "seed": seed}
+                row.update(run_edgevo(seq, seed) if seed is not None else run_peer(method, seq))
+                print(_progress(row), flush=True)
+                runs.append(row)
+    return runs
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("sequences", nargs="*", type=Path, metavar="SEQ_DIR",
+                   help=f"TUM sequence folders (default: {DEFAULT_SEQUENCE})")
+    p.add_argument("--steps", default="1,2,3,5", help="frame steps k (default 1,2,3,5)")
+    p.add_argument("--seeds", default="0-4", help="edgevo selection seeds (0-4 or 0,1,2)")
+    p.add_argument("--peers", default=",".join(DEFAULT_PEERS),
+                   help=f"bench.py peers, comma-separated, '' for none ({', '.join(bench.PEERS)})")
+    p.add_argument("--max-frames", type=int, default=None,
+                   help="cut each sequence to its first N frames before the sweep")
+    p.add_argument("--warmup-frames", type=int, default=40,
+                   help="frames of the untimed warm-up run (0: none; default 40)")
+    p.add_argument("--out-json", type=Path, default=DEFAULT_OUT / "robustness.json")
+    p.add_argument("--out-md", type=Path, default=DEFAULT_OUT / "robustness.md")
+    p.add_argument("--out-png", type=Path, default=DEFAULT_OUT / "robustness.png")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the sweep, write JSON / markdown / PNG, print the table."""
+    enable_batch_exact()  # before any JAX computation
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = _parser().parse_args(argv)
+    steps = parse_int_list(args.steps)
+    if min(steps) < 1:
+        raise SystemExit(f"--steps must be positive, got {args.steps!r}")
+    seeds = parse_int_list(args.seeds)
+    peers = [p.strip() for p in args.peers.split(",") if p.strip()]
+    seq_dirs = args.sequences or [DEFAULT_SEQUENCE]
+    runs = run_all(seq_dirs, steps, seeds, peers, args.max_frames, args.warmup_frames)
+    rows = aggregate(runs)
+    table = markdown_table(rows)
+    command = shlex.join(["python", os.path.relpath(__file__), *argv])
+    missing = {f"{r['method']}": r["missing"] for r in runs if "missing" in r}
+    result = {
+        "command": command, "machine": machine_info(), "steps": steps, "seeds": seeds,
+        "peers": peers, "max_frames": args.max_frames, "warmup_frames": args.warmup_frames,
+        "thresholds": {"diverged_trans_m": DIVERGED_TRANS_M, "diverged_rot_deg":
+                       DIVERGED_ROT_DEG, "groundtruth_max_diff_s": GT_MAX_DIFF_S},
+        "notes": [DIVERGED_NOTE, f"ms: warm frames (the first {WARM_SKIP} skipped), image "
+                  "decoding excluded; peers: a failed pair is a LOST frame"],
+        "missing": missing, "aggregates": rows, "runs": runs,
+    }
+    args.out_json.parent.mkdir(parents=True, exist_ok=True)
+    args.out_json.write_text(json.dumps(json_safe(result), indent=1) + "\n")
+    md = (f"# Robustness: frame-rate sweep\n\n`{command}`\n\n{table}\n\n{DIVERGED_NOTE}. "
+          f"ms: warm frames, decoding excluded. Machine: {result['machine'].get('platform')}, "
+          f"{result['machine'].get('cpus_usable')} CPUs, {result['machine'].get('date')}.\n")
+    if missing:
+        md += "".join(f"\nmissing: {m}: {why}" for m, why in missing.items()) + "\n"
+    args.out_md.parent.mkdir(parents=True, exist_ok=True)
+    args.out_md.write_text(md)
+    png = plot(rows, args.out_png)
+    print(table)
+    print(f"\nwrote {args.out_json}, {args.out_md}" + (f", {png}" if png else ""))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
