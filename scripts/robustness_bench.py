@@ -9,9 +9,10 @@ Usage::
                                        [--out-png docs/robustness/robustness.png]
 
 For every sequence (default: fr3_teddy's first 200 frames) and frame step k, the sequence is
-played at 1/k of its frame rate (every k-th associated rgb/depth pair,
-``datasets.subsequence(seq, 0, len(seq), step=k)``; ``--max-frames`` cuts the sequence
-first) and tracked
+played at 1/k of its frame rate as the benchmark's lists would be recorded: every k-th line
+of rgb.txt and of depth.txt, then associated (``load_sequence(..., frame_step=k)``; where the
+lists have gaps, pairs drop out and the motion between tracked frames spans more than k
+frames; ``--max-frames`` keeps the frames up to the full sequence's frame N) and tracked
 
 - by edgevo_jax in this process (``run_sequence``, the default ``Config`` but for the
   selection seed: one run per ``--seeds`` seed; the first run of the process is preceded by
@@ -388,7 +389,10 @@ def run_all(seq_dirs: Sequence[Path], steps: Sequence[int], seeds: Sequence[int]
             warm_up(full, warmup_frames)
             warmed = True
         for k in steps:
-            seq = subsequence(full, 0, len(full), step=k)
+            seq = load_sequence(seq_dir, frame_step=k)
+            if max_frames is not None:  # the same span of time as the full sequence's cut
+                t_end = full.timestamps[-1]
+                seq = subsequence(seq, 0, int(np.searchsorted(seq.timestamps, t_end, "right")))
             base = {"sequence": full.name, "step": k, "path": str(seq_dir)}
             jobs: list[tuple[str, int | None]] = [(EDGEVO, s) for s in seeds]
             jobs += [(p, None) for p in peers]
