@@ -55,7 +55,7 @@ from ..hostmem import aligned_stack, to_host
 from ..image.interp import stack_edge_maps
 from ..image.preprocess import Frame, preprocess
 from .odometry import FrameResult, FrameResults, Odometry
-from .run import initial_pose
+from .run import conclude_chunk, initial_pose
 
 #: Config fields that change the pre-processed frames (runs differing in them do not share).
 PREPROCESS_FIELDS = ("blur_ksize", "blur_sigma", "canny_low", "canny_high", "min_depth",
@@ -294,15 +294,12 @@ def evaluate(
 
 def _conclude_chunk(lane: _Lane, out, chunk: int, bar: tqdm) -> None:
     """Conclude a run's chunk in order, up to the first frame that changes its state."""
-    start = lane.position
-    for j in range(min(chunk, len(lane.timestamps) - start)):
-        res = jax.tree.map(lambda a, j=j: a[j], out)
-        result, plain = lane.odo.accept(lane.frames[start + j], lane.timestamps[start + j], res)
-        lane.run.results.append(result)
-        lane.position += 1
-        bar.update(1)
-        if not plain:
-            break
+    stop = min(lane.position + chunk, len(lane.timestamps))
+    frames = [lane.frames[i] for i in range(lane.position, stop)]  # prefetched: just solved
+    done = conclude_chunk(lane.odo, frames, lane.timestamps[lane.position:stop], out)
+    lane.run.results += done
+    lane.position += len(done)
+    bar.update(len(done))
 
 
 def _stack_inputs(lanes: list[_Lane], srcs: list[_Frames], slowest: list[int], width: int,

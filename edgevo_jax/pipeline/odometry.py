@@ -169,13 +169,8 @@ class Odometry:
         """Dispatch the solve of one pre-processed frame; read it back with ``complete``."""
         if self._in_flight:
             raise RuntimeError("complete() the frame in flight before submitting another")
-        timestamp = float(timestamp)
-        if self._last_t is not None and timestamp <= self._last_t:
-            raise ValueError(
-                f"timestamp {timestamp:.6f} does not increase (last was {self._last_t:.6f})"
-            )
+        timestamp = self._advance_time(timestamp)
         t_submit = time.perf_counter()
-        self._last_t = timestamp
         self._in_flight = True
         if self._kf is None:
             return _Pending(frame, timestamp, self._initial, None, preprocess_ms, t_submit)
@@ -220,15 +215,21 @@ class Odometry:
         scan, a batch) from this tracker's current ``solve_inputs``. Returns its result and
         whether the state went on plainly (False: a keyframe, a loss or a recovery changed
         it, and later results of the same chunk are stale)."""
+        timestamp = self._advance_time(timestamp)
+        t_submit = time.perf_counter() if t_submit is None else t_submit
+        pending = _Pending(frame, timestamp, self._predict(), None, preprocess_ms, t_submit)
+        return self._conclude(pending, res, time.perf_counter())
+
+    def _advance_time(self, timestamp: float) -> float:
+        """The frame's timestamp as a float, made the last one; ValueError when it does not
+        increase."""
         timestamp = float(timestamp)
         if self._last_t is not None and timestamp <= self._last_t:
             raise ValueError(
                 f"timestamp {timestamp:.6f} does not increase (last was {self._last_t:.6f})"
             )
         self._last_t = timestamp
-        t_submit = time.perf_counter() if t_submit is None else t_submit
-        pending = _Pending(frame, timestamp, self._predict(), None, preprocess_ms, t_submit)
-        return self._conclude(pending, res, time.perf_counter())
+        return timestamp
 
     def _first(self, pending: _Pending) -> FrameResult:
         """The first frame (or one while there is no usable keyframe): it becomes the

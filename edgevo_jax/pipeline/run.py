@@ -196,13 +196,25 @@ def track_in_chunks(odo: Odometry, frames: list[Frame], timestamps: list[float],
         todo = frames[i:i + size]
         t_submit = time.perf_counter()
         out = to_host(dispatch_chunk(odo, todo, size))
-        for j in range(len(todo)):
-            res = jax.tree.map(lambda a, j=j: a[j], out)
-            result, plain = odo.accept(todo[j], timestamps[i + j], res, t_submit=t_submit)
-            results.append(result)
-            if not plain:
-                break
-        i += j + 1
+        done = conclude_chunk(odo, todo, timestamps[i:i + size], out, t_submit=t_submit)
+        results += done
+        i += len(done)
+    return results
+
+
+def conclude_chunk(odo: Odometry, frames: list[Frame], timestamps: list[float], out, *,
+                   t_submit: float | None = None) -> list[FrameResult]:
+    """Conclude the solved frames of a chunk in order (``out``: the scan's host arrays, C
+    leading, C >= len(frames)) with ``odo.accept``, up to and including the first frame that
+    changes the state (a new keyframe, a loss, a recovery): the rest of the chunk was
+    solved against a state that no longer holds. Returns the concluded frames' results."""
+    results: list[FrameResult] = []
+    for j, (frame, timestamp) in enumerate(zip(frames, timestamps, strict=True)):
+        res = jax.tree.map(lambda a, j=j: a[j], out)
+        result, plain = odo.accept(frame, timestamp, res, t_submit=t_submit)
+        results.append(result)
+        if not plain:
+            break
     return results
 
 
