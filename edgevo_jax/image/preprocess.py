@@ -42,7 +42,9 @@ class Frame:
     dist: one float32 distance field per level, (H / 2**l, W / 2**l), in that level's pixels;
     edge_map: ``preprocess.EdgeMap`` (level-0 field and (H, W) uint8 direction codes), from
     which the device finds the nearest edge's gradient; depth: the (H, W) depth image in
-    metres it was made from (a reference, not a copy; the local map reads it at keyframes).
+    metres it was made from (a reference, not a copy; the local map reads it at keyframes);
+    gray: the (H, W) uint8 image the edges were found in (a reference; recovery's feature
+    hypotheses read it), None when the frame was made from edges alone.
     """
 
     edge_uv: np.ndarray
@@ -52,6 +54,7 @@ class Frame:
     dist: tuple[np.ndarray, ...]
     edge_map: EdgeMap
     depth: np.ndarray | None = None
+    gray: np.ndarray | None = None
 
     @property
     def num_edges(self) -> int:
@@ -160,8 +163,9 @@ def start_preprocess(rgb: np.ndarray, depth: np.ndarray, config: Config) -> Prep
     """The first half of ``preprocess``: edges found, the distance fields launched on the
     worker thread, the edges' gradients and depths gathered. Do other work, then call
     ``.finish()`` for the Frame."""
-    edges, gx, gy = detect_edges(to_gray(rgb), config)
-    return PreprocessJob.start(edges, gx, gy, depth, config)
+    gray = to_gray(rgb)
+    edges, gx, gy = detect_edges(gray, config)
+    return PreprocessJob.start(edges, gx, gy, depth, config, gray=gray)
 
 
 def frame_from_edges(
@@ -201,9 +205,11 @@ class PreprocessJob:
     fields: Future
     depth_image: np.ndarray | None = None  # (H, W) metres, a reference (Frame.depth)
     codes: np.ndarray | None = None  # (N,) the edges' direction codes, when looked up
+    gray: np.ndarray | None = None  # (H, W) uint8, a reference (Frame.gray)
 
     @classmethod
-    def start(cls, edges, gx, gy, depth, config: Config) -> PreprocessJob:
+    def start(cls, edges, gx, gy, depth, config: Config, *, gray: np.ndarray | None = None
+              ) -> PreprocessJob:
         """Launch ``distance_fields`` on the worker thread, then find the edge pixels and
         gather their gradients and depths."""
         fields = _worker().submit(distance_fields, edges, config.num_levels)
@@ -222,7 +228,7 @@ class PreprocessJob:
                 2 * SOBEL_MAX + 1) + (sgx.astype(np.int32) + SOBEL_MAX))
         d = np.take(depth.ravel(), flat).astype(np.float32)
         d = np.where(np.isfinite(d) & (d >= config.min_depth) & (d <= config.max_depth), d, 0.0)
-        return cls(pts, grad, mag, d.astype(np.float32), (h, w), fields, depth, codes)
+        return cls(pts, grad, mag, d.astype(np.float32), (h, w), fields, depth, codes, gray)
 
     def finish(self) -> Frame:
         """Make the direction codes (while the worker may still run), wait for the distance
@@ -237,4 +243,5 @@ class PreprocessJob:
             dist=dist,
             edge_map=EdgeMap(dist[0], code),
             depth=self.depth_image,
+            gray=self.gray,
         )

@@ -19,6 +19,7 @@ from ..camera import Intrinsics
 from ..config import Config
 from ..derive import solve_knobs, solve_structure
 from ..determinism import full_precision
+from ..frontend import features
 from ..frontend.align import TrackResult, track
 from ..frontend.chunk import track_next_jit
 from ..frontend.keyframes import keyframe_reason
@@ -31,6 +32,13 @@ from ..learn.params import Params, solve_knobs_of
 _track_jit = full_precision(jax.jit(track, static_argnames="config"))
 
 OK, WEAK, LOST = "OK", "WEAK", "LOST"
+#: frames (not lost) whose median inlier share is the reference for ``Config.min_share_ratio``
+SHARE_HISTORY = 5
+
+
+def inlier_share(res) -> float:
+    """Level-0 inliers per keyframe edge in view of a TrackResult (0 with none in view)."""
+    return float(res.inliers) / max(float(res.visible), 1.0)
 
 
 @dataclass(frozen=True)
@@ -101,6 +109,8 @@ class _Keyframe:
     edges: KeyframeEdges  # on device
     num_edges: int
     inlier_counts: list[int] = field(default_factory=list)
+    frame: Frame | None = None  # its frame (gray image and depth for feature hypotheses)
+    keypoints: features.Keypoints | None = None  # detected when recovery first needs them
 
 
 class Odometry:
@@ -131,6 +141,8 @@ class Odometry:
         self._initial = pose
         self._kf: _Keyframe | None = None
         self._poses: list[np.ndarray] = []  # the last two T_world_cam, for constant velocity
+        self._times: list[float] = []  # their timestamps
+        self._shares: list[float] = []  # inlier shares of the last frames not lost
         self._last_t: float | None = None
         self._in_flight = False
         self.num_keyframes = 0
@@ -236,7 +248,7 @@ class Odometry:
         keyframe when it has enough edges with depth."""
         made_kf = self._make_keyframe(pending.frame, pending.timestamp, pending.predicted)
         pose = pending.predicted if made_kf is None else made_kf[0]
-        self._push(pose)
+        self._push(pose, pending.timestamp)
         state, reason = (OK, None) if made_kf else (LOST, "no edges with depth")
         if self._kf is not None:
             self._rel = self._relative_from_world()
@@ -249,17 +261,17 @@ class Odometry:
         kf = start_kf = self._kf
         solved = res
         lost = self._lost_reason(frame, res)
-        # lost, or far fewer inliers than this keyframe's frames had (a wrong basin, as
-        # after a prediction far off): recovery tries other starts and other keyframes
-        collapsed = lost is None and kf.inlier_counts and int(res.inliers) < (
-            self.config.kf_min_inlier_ratio * float(np.mean(kf.inlier_counts)))
-        if (lost is not None and frame.num_edges > 0) or collapsed:
-            found = self._recover(frame, pending.predicted)
-            if found is not None and (lost is not None or (
-                    found[1].cost < res.cost if found[0] is kf
-                    else found[1].inliers > res.inliers)):
+        # lost, or doubted (a share of inliers far under the recent frames': a wrong basin,
+        # as after a prediction far off): recovery tries other starts and other keyframes
+        reference = self._reference_share()
+        if frame.num_edges > 0 and (lost is not None or self._doubted(res, reference)):
+            found = self._recover(frame, pending, None if lost else res, reference)
+            if found is not None:
                 kf, res = found
                 lost = None
+        if lost is None and self._doubted(res, reference):
+            lost = (f"inlier share {inlier_share(res):.2f} under "
+                    f"{self.config.min_share_ratio:g} x the recent {reference:.2f}")
         inliers = int(res.inliers)
         weak = None
         if lost is None:
@@ -271,6 +283,7 @@ class Odometry:
                 dt=timestamp - kf.timestamp, config=self.config,
             )
             kf.inlier_counts.append(inliers)
+            self._shares = (self._shares + [inlier_share(res)])[-SHARE_HISTORY:]
             weak = self._weak_reason(frame, res)
             if kf is not self._kf:  # recovered against an earlier keyframe: it takes over
                 self._kf = kf
@@ -280,7 +293,7 @@ class Odometry:
         made_kf = self._make_keyframe(frame, timestamp, pose) if reason else None
         if made_kf is not None:
             pose = made_kf[0]  # refined in the window
-        self._push(pose)
+        self._push(pose, timestamp)
         plain = lost is None and kf is start_kf and made_kf is None and res is solved
         # the device predicts the next frame from A, B: the solve's own float32 pose when
         # nothing changed (as the scan carries it), else from the host's world poses
@@ -290,6 +303,18 @@ class Odometry:
         state = LOST if lost else (WEAK if weak else OK)
         return self._result(pending, pose, state, lost or weak, inliers, cov,
                             reason if made_kf else None, used, made_kf, t_solve), plain
+
+    def _reference_share(self) -> float | None:
+        """The median inlier share (``inlier_share``) of the last ``SHARE_HISTORY`` frames
+        that were not lost; None before there are any or with the check off."""
+        if not self._shares or self.config.min_share_ratio <= 0:
+            return None
+        return float(np.median(self._shares))
+
+    def _doubted(self, res, reference: float | None) -> bool:
+        """Whether a result's inlier share is under ``min_share_ratio`` x the reference."""
+        return reference is not None and inlier_share(res) < (
+            self.config.min_share_ratio * reference)
 
     def _lost_reason(self, frame: Frame, res) -> str | None:
         """Why a solve result cannot be used (None: it can): no edges in the frame,
@@ -319,30 +344,66 @@ class Odometry:
             return "no depth (cannot become a keyframe)"
         return None
 
-    def _recover(self, frame: Frame, predicted: np.ndarray):
-        """After a loss: align again from other starting poses (the keyframe's own pose, the
-        last frame's, constant velocity doubled and halved) against the current keyframe,
-        then against the earlier keyframes kept; the first keyframe where a start succeeds
-        wins, with the start of lowest robust cost. Returns (keyframe, result) or None."""
+    def _recover(self, frame: Frame, pending: _Pending, first, reference: float | None):
+        """Align the frame again from other starts; returns (keyframe, result) better than
+        ``first`` (the solve from the prediction, None when it was lost), or None.
+
+        Against the current keyframe, in order of cost: the keyframe's own pose, the last
+        frame's (no motion), constant velocity scaled by the frames' time steps, doubled
+        and halved; then, where the frame and the keyframe have their gray images, the pose
+        of matched SIFT keypoints (``features.relative_pose``: motions far beyond the edge
+        alignment's basin); then the earlier keyframes kept, from the prediction and the
+        same starts. Results are compared by inlier share (``inlier_share``); the search stops
+        at the first keyframe whose best result is usable and not doubted."""
         last = self._poses[-1]
         starts = [last]
         if len(self._poses) == 2:
-            step = inverse_np(self._poses[0]) @ last  # one frame's motion
-            starts += [last @ step @ step, last @ scale_motion_np(step, 0.5)]
+            step = inverse_np(self._poses[0]) @ last  # the last frame's motion
+            t_prev, t_last = self._times
+            scale = (pending.timestamp - t_last) / max(t_last - t_prev, 1e-6)
+            scales = [min(scale, 8.0)] if abs(scale - 1.0) > 0.25 else []
+            starts += [last @ scale_motion_np(step, s) for s in [*scales, 2.0, 0.5]]
+        best = (self._kf, first) if first is not None else None
+
+        def better(kf, out):
+            nonlocal best
+            if self._lost_reason(frame, out) is None and (
+                    best is None or inlier_share(out) > inlier_share(best[1])):
+                best = (kf, out)
+
+        def settled() -> bool:
+            return best is not None and best[1] is not first and not self._doubted(
+                best[1], reference)
+
         for kf in [self._kf, *reversed(self._previous)]:
-            guesses = [kf.pose, *starts] if kf is self._kf else [predicted, *starts]
-            best = None
+            guesses = [kf.pose, *starts] if kf is self._kf else [pending.predicted, *starts]
             for T_w_c in guesses:
-                out = to_host(_track_jit(
-                    kf.edges, frame.dist, frame.edge_map,
-                    (inverse_np(T_w_c) @ kf.pose).astype(np.float32), self.intrinsics,
-                    config=self._static, knobs=self.knobs))
-                if self._lost_reason(frame, out) is None and (
-                        best is None or float(out.cost) < float(best.cost)):
-                    best = out
-            if best is not None:
-                return kf, best
-        return None
+                better(kf, self._align(kf, frame, inverse_np(T_w_c) @ kf.pose))
+            if kf is self._kf and not settled() and self.config.recovery_features:
+                T_c_k = self._feature_start(kf, frame)
+                if T_c_k is not None:
+                    better(kf, self._align(kf, frame, T_c_k))
+            if settled():
+                break
+        return best if best is not None and best[1] is not first else None
+
+    def _align(self, kf: _Keyframe, frame: Frame, T_c_k: np.ndarray):
+        """The edge alignment of ``frame`` to ``kf`` from the start T_cur_kf (host arrays)."""
+        return to_host(_track_jit(
+            kf.edges, frame.dist, frame.edge_map, np.asarray(T_c_k, np.float32),
+            self.intrinsics, config=self._static, knobs=self.knobs))
+
+    def _feature_start(self, kf: _Keyframe, frame: Frame) -> np.ndarray | None:
+        """T_cur_kf from SIFT keypoints matched between the keyframe and the frame (the
+        keyframe's keypoints are detected once), or None without gray images or a pose."""
+        if frame.gray is None or kf.frame is None or kf.frame.gray is None \
+                or kf.frame.depth is None:
+            return None
+        if kf.keypoints is None:
+            kf.keypoints = features.detect(kf.frame.gray)
+        return features.relative_pose(
+            kf.keypoints, kf.frame.depth, features.detect(frame.gray), self.intrinsics,
+            min_depth=self.config.min_depth, max_depth=self.config.max_depth)
 
     # -- internals ------------------------------------------------------------------------
     def _check_frame(self, rgb, depth, timestamp) -> None:
@@ -388,8 +449,9 @@ class Odometry:
         rel = [aligned_array(inverse_np(p) @ self._kf.pose, np.float32) for p in self._poses]
         return rel[-1], rel[0]
 
-    def _push(self, pose: np.ndarray) -> None:
+    def _push(self, pose: np.ndarray, timestamp: float) -> None:
         self._poses = (self._poses + [pose])[-2:]
+        self._times = (self._times + [timestamp])[-2:]
 
     def _make_keyframe(self, frame: Frame, timestamp: float, pose: np.ndarray
                        ) -> tuple[np.ndarray, float, float | None] | None:
@@ -415,7 +477,8 @@ class Odometry:
             mapping_ms = (time.perf_counter() - t1) * 1e3
         if self._kf is not None:
             self._previous = [*self._previous, self._kf][-(self.config.recovery_keyframes):]
-        self._kf = _Keyframe(timestamp, pose, KeyframeEdges(*(jnp.asarray(a) for a in edges)), n)
+        self._kf = _Keyframe(timestamp, pose, KeyframeEdges(*(jnp.asarray(a) for a in edges)), n,
+                             frame=frame)
         self.num_keyframes += 1
         return pose, (t1 - t0) * 1e3, mapping_ms
 
