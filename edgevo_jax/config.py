@@ -46,10 +46,11 @@ class Config:
     min_inliers: int = 30  # fewer level-0 inliers than this: tracking lost
     max_covariance_condition: float = 1e6  # lost beyond this condition number
     recovery_keyframes: int = 3  # earlier keyframes tried after a loss
-    # a frame whose share of inliers among the keyframe edges in view falls below this
-    # fraction of the recent frames' median share is doubted (a wrong basin matches by chance):
-    # recovery tries other starts; LOST when none reaches it (0: no such check)
-    min_share_ratio: float = 0.5
+    # inlier share: level-0 inliers per keyframe edge in view, against the median of the
+    # recent frames'. Under doubt_share_ratio of it recovery tries other starts (keeping the
+    # best); under lost_share_ratio with no better start the frame is LOST (0: no check)
+    doubt_share_ratio: float = 0.8
+    lost_share_ratio: float = 0.5
     recovery_features: bool = True  # recovery also starts from SIFT + PnP (features.py)
     # --- keyframes (host) ---
     kf_flow_weight: float = 0.02  # w1, on RMS flow (px)
@@ -91,8 +92,8 @@ class Config:
             raise ValueError("Config needs 0 < min_depth < max_depth")
         if self.window_size < 3:
             raise ValueError("Config.window_size must be at least 3 (the newest two stay)")
-        if not 0.0 <= self.min_share_ratio < 1.0:
-            raise ValueError("Config.min_share_ratio must be in [0, 1)")
+        if not 0.0 <= self.lost_share_ratio <= self.doubt_share_ratio < 1.0:
+            raise ValueError("Config needs 0 <= lost_share_ratio <= doubt_share_ratio < 1")
         if not self.activation_depth_step >= 0:
             raise ValueError("Config.activation_depth_step must be >= 0 (0: no depth test)")
         for name in ("active_per_keyframe", "activation_cell", "mapping_iterations",

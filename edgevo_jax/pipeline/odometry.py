@@ -32,7 +32,7 @@ from ..learn.params import Params, solve_knobs_of
 _track_jit = full_precision(jax.jit(track, static_argnames="config"))
 
 OK, WEAK, LOST = "OK", "WEAK", "LOST"
-#: frames (not lost) whose median inlier share is the reference for ``Config.min_share_ratio``
+#: frames (not lost) whose median inlier share is the reference for the share ratios of ``Config``
 SHARE_HISTORY = 5
 
 
@@ -264,14 +264,15 @@ class Odometry:
         # lost, or doubted (a share of inliers far under the recent frames': a wrong basin,
         # as after a prediction far off): recovery tries other starts and other keyframes
         reference = self._reference_share()
-        if frame.num_edges > 0 and (lost is not None or self._doubted(res, reference)):
+        doubt, lost_ratio = self.config.doubt_share_ratio, self.config.lost_share_ratio
+        if frame.num_edges > 0 and (lost is not None or self._under(res, reference, doubt)):
             found = self._recover(frame, pending, None if lost else res, reference)
             if found is not None:
                 kf, res = found
                 lost = None
-        if lost is None and self._doubted(res, reference):
-            lost = (f"inlier share {inlier_share(res):.2f} under "
-                    f"{self.config.min_share_ratio:g} x the recent {reference:.2f}")
+        if lost is None and self._under(res, reference, lost_ratio):
+            lost = (f"inlier share {inlier_share(res):.2f} under {lost_ratio:g} x the recent "
+                    f"{reference:.2f} from every start")
         inliers = int(res.inliers)
         weak = None
         if lost is None:
@@ -307,14 +308,14 @@ class Odometry:
     def _reference_share(self) -> float | None:
         """The median inlier share (``inlier_share``) of the last ``SHARE_HISTORY`` frames
         that were not lost; None before there are any or with the check off."""
-        if not self._shares or self.config.min_share_ratio <= 0:
+        if not self._shares or self.config.doubt_share_ratio <= 0:
             return None
         return float(np.median(self._shares))
 
-    def _doubted(self, res, reference: float | None) -> bool:
-        """Whether a result's inlier share is under ``min_share_ratio`` x the reference."""
-        return reference is not None and inlier_share(res) < (
-            self.config.min_share_ratio * reference)
+    @staticmethod
+    def _under(res, reference: float | None, ratio: float) -> bool:
+        """Whether a result's inlier share is under ``ratio`` x the reference share."""
+        return reference is not None and inlier_share(res) < ratio * reference
 
     def _lost_reason(self, frame: Frame, res) -> str | None:
         """Why a solve result cannot be used (None: it can): no edges in the frame,
@@ -354,7 +355,8 @@ class Odometry:
         of matched SIFT keypoints (``features.relative_pose``: motions far beyond the edge
         alignment's basin); then the earlier keyframes kept, from the prediction and the
         same starts. Results are compared by inlier share (``inlier_share``); the search stops
-        at the first keyframe whose best result is usable and not doubted."""
+        once the best is usable and no longer under ``Config.doubt_share_ratio`` x the
+        reference share."""
         last = self._poses[-1]
         starts = [last]
         if len(self._poses) == 2:
@@ -372,8 +374,8 @@ class Odometry:
                 best = (kf, out)
 
         def settled() -> bool:
-            return best is not None and best[1] is not first and not self._doubted(
-                best[1], reference)
+            return best is not None and best[1] is not first and not self._under(
+                best[1], reference, self.config.doubt_share_ratio)
 
         for kf in [self._kf, *reversed(self._previous)]:
             guesses = [kf.pose, *starts] if kf is self._kf else [pending.predicted, *starts]
