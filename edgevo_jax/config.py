@@ -46,9 +46,10 @@ class Config:
     min_inliers: int = 30  # fewer level-0 inliers than this: tracking lost
     max_covariance_condition: float = 1e6  # lost beyond this condition number
     recovery_keyframes: int = 3  # earlier keyframes tried after a loss
-    # inlier share: level-0 inliers per keyframe edge in view, against the median of the
-    # recent frames'. Under doubt_share_ratio of it recovery tries other starts (keeping the
-    # best); under lost_share_ratio with no better start the frame is LOST (0: no check)
+    # inlier share: level-0 inliers per keyframe edge in view, against the highest of the
+    # last 5 frames' (what a correct alignment reaches here). Under doubt_share_ratio of it
+    # recovery tries other starts (keeping the best); under lost_share_ratio with no better
+    # start the frame is LOST (doubt_share_ratio 0: no check)
     doubt_share_ratio: float = 0.8
     lost_share_ratio: float = 0.5
     recovery_features: bool = True  # recovery also starts from SIFT + PnP (features.py)

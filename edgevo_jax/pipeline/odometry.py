@@ -32,7 +32,7 @@ from ..learn.params import Params, solve_knobs_of
 _track_jit = full_precision(jax.jit(track, static_argnames="config"))
 
 OK, WEAK, LOST = "OK", "WEAK", "LOST"
-#: frames (not lost) whose median inlier share is the reference for the share ratios of ``Config``
+#: frames (not lost) whose highest inlier share is the reference for the share ratios of ``Config``
 SHARE_HISTORY = 5
 
 
@@ -306,11 +306,11 @@ class Odometry:
                             reason if made_kf else None, used, made_kf, t_solve), plain
 
     def _reference_share(self) -> float | None:
-        """The median inlier share (``inlier_share``) of the last ``SHARE_HISTORY`` frames
+        """The highest inlier share (``inlier_share``) of the last ``SHARE_HISTORY`` frames
         that were not lost; None before there are any or with the check off."""
         if not self._shares or self.config.doubt_share_ratio <= 0:
             return None
-        return float(np.median(self._shares))
+        return float(np.max(self._shares))
 
     @staticmethod
     def _under(res, reference: float | None, ratio: float) -> bool:
