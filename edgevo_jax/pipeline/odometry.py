@@ -265,7 +265,10 @@ class Odometry:
         # as after a prediction far off): recovery tries other starts and other keyframes
         reference = self._reference_share()
         doubt, lost_ratio = self.config.doubt_share_ratio, self.config.lost_share_ratio
-        if frame.num_edges > 0 and (lost is not None or self._under(res, reference, doubt)):
+        # with no reference yet (the first frames) every start is tried: the reference is
+        # only as good as the frames it comes from
+        if frame.num_edges > 0 and (lost is not None or self._under(res, reference, doubt)
+                                    or (reference is None and doubt > 0)):
             found = self._recover(frame, pending, None if lost else res, reference)
             if found is not None:
                 kf, res = found
@@ -374,8 +377,8 @@ class Odometry:
                 best = (kf, out)
 
         def settled() -> bool:
-            return best is not None and best[1] is not first and not self._under(
-                best[1], reference, self.config.doubt_share_ratio)
+            return best is not None and best[1] is not first and reference is not None \
+                and not self._under(best[1], reference, self.config.doubt_share_ratio)
 
         for kf in [self._kf, *reversed(self._previous)]:
             guesses = [kf.pose, *starts] if kf is self._kf else [pending.predicted, *starts]
