@@ -53,6 +53,9 @@ class Config:
     doubt_share_ratio: float = 0.8
     lost_share_ratio: float = 0.5
     recovery_features: bool = True  # recovery also starts from SIFT + PnP (features.py)
+    # point-to-plane ICP of keyframe depth points added to the edge residual (depth.py)
+    depth_residual: bool = False
+    depth_points: int = 256  # keyframe depth points with depth_residual
     # --- keyframes (host) ---
     kf_flow_weight: float = 0.02  # w1, on RMS flow (px)
     kf_flow_t_weight: float = 0.04  # w2, on RMS flow without rotation (px)
@@ -84,7 +87,7 @@ class Config:
             raise ValueError(
                 f"Config.selection must be one of {', '.join(SELECTIONS)}, got {self.selection!r}"
             )
-        for name in ("max_edges", "num_edges", "cell_size", "max_per_cell"):
+        for name in ("max_edges", "num_edges", "cell_size", "max_per_cell", "depth_points"):
             if getattr(self, name) < 1:
                 raise ValueError(f"Config.{name} must be positive")
         if self.logdet_lambda <= 0 or not 0 < self.greedy_epsilon < 1:

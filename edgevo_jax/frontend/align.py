@@ -21,6 +21,7 @@ from ..derive import SolveKnobs, SolveStructure, solve_knobs
 from ..geometry import Pose
 from ..image.preprocess import EdgeMap
 from ..solvers import DAMPING, LMState, lower_cost
+from .depth import depth_valid, point_to_plane
 from .residuals import consistency_dots_at_level, residual_jacobian_grad, warp
 from .robust import edge_weights, huber_cost, huber_weights
 from .selection import KeyframeEdges
@@ -104,12 +105,30 @@ def normal_equations(
     consistent = consistency_dots_at_level(kf.grad, edge_map, uv_c, r, grad, level) >= knobs.eta
     delta, gate = knobs.huber_delta[level], knobs.max_residual[level]
     mask = kf.valid & ok & (r <= gate) & consistent
+    if kf.depth_pts is not None and edge_map.depth is not None:
+        extra = depth_system(T, kf, edge_map.depth, intr, level, delta, gate)
+    else:
+        extra = None
     if knobs.weighting is None:
-        return robust_system(r, J, mask, kf.valid, delta, gate)
+        system = robust_system(r, J, mask, kf.valid, delta, gate)
+        return system if extra is None else LevelSystem(system.sums + extra)
     if kf.mag is None:
         raise ValueError("the per-edge weighting model needs KeyframeEdges.mag")
     weight, slope = edge_weights(knobs.weighting, kf.mag, kf.rho, r, gate, level)
-    return robust_system(r, J, mask, kf.valid, delta, gate, weight=weight, weight_slope=slope)
+    system = robust_system(r, J, mask, kf.valid, delta, gate, weight=weight,
+                           weight_slope=slope)
+    return system if extra is None else LevelSystem(system.sums + extra)
+
+
+def depth_system(T: Pose, kf: KeyframeEdges, depth: jnp.ndarray, intr: Intrinsics,
+                 level: int, delta: jnp.ndarray, gate: jnp.ndarray) -> jnp.ndarray:
+    """The depth residual's part of the sums (``depth.point_to_plane``, gated and
+    Huber-weighted like the edges at ``level``): H, g and cost; zero inlier count and
+    residual sum, which stay the edges'."""
+    r, J, ok = point_to_plane(T, kf.depth_pts, kf.depth_normals, depth, intr, level)
+    valid = depth_valid(kf.depth_normals)
+    sums = robust_system(r, J, ok & (jnp.abs(r) <= gate), valid, delta, gate).sums
+    return sums.at[28:].set(0.0)
 
 
 def sum_rows(rows: list[jnp.ndarray]) -> jnp.ndarray:

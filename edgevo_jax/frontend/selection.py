@@ -46,13 +46,17 @@ class KeyframeEdges(NamedTuple):
     """Fixed-size edge set of a keyframe (struct of arrays): uv (2, K) level-0 pixels,
     rho (K,) inverse depth (1/m), grad (2, K) normalised image gradient, valid (K,) bool
     (padding slots are False and hold rho = 1), and mag (K,) the gradient magnitude (0 in
-    padding slots; None when not known: only the per-edge weighting model reads it)."""
+    padding slots; None when not known: only the per-edge weighting model reads it);
+    depth_pts (3, M) and depth_normals (3, M): the keyframe's depth points for the optional
+    depth residual (``depth.depth_points``; None without it)."""
 
     uv: jnp.ndarray
     rho: jnp.ndarray
     grad: jnp.ndarray
     valid: jnp.ndarray
     mag: jnp.ndarray | None = None
+    depth_pts: jnp.ndarray | None = None
+    depth_normals: jnp.ndarray | None = None
 
 
 class Candidates(NamedTuple):

@@ -159,5 +159,7 @@ def _direction_table(dtype) -> jnp.ndarray:
 
 
 def stack_edge_maps(maps) -> EdgeMap:
-    """EdgeMaps (numpy) stacked on a new leading axis: dist0 (n, H, W), code (n, H, W)."""
-    return EdgeMap(*(aligned_stack(xs) for xs in zip(*maps, strict=True)))
+    """EdgeMaps (numpy) stacked on a new leading axis: dist0 (n, H, W), code (n, H, W),
+    depth (n, H, W) or None."""
+    return EdgeMap(*(None if xs[0] is None else aligned_stack(xs)
+                     for xs in zip(*maps, strict=True)))

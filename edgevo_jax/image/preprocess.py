@@ -27,10 +27,12 @@ class EdgeMap(NamedTuple):
     """Where the nearest edge p' of a level-0 pixel is, and its gradient: the level-0
     distance field dist0 (H, W) (px) and code (H, W) uint8, the direction of the edge at
     each edge pixel (1 + its gradient angle in 254 steps; see ``preprocess.direction_codes``),
-    copied to the empty neighbours of edge pixels; 0 elsewhere."""
+    copied to the empty neighbours of edge pixels; 0 elsewhere. depth (H, W) float32 metres
+    (0 = missing): the frame's depth map for the optional depth residual, None without it."""
 
     dist0: jnp.ndarray
     code: jnp.ndarray
+    depth: jnp.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -206,6 +208,7 @@ class PreprocessJob:
     depth_image: np.ndarray | None = None  # (H, W) metres, a reference (Frame.depth)
     codes: np.ndarray | None = None  # (N,) the edges' direction codes, when looked up
     gray: np.ndarray | None = None  # (H, W) uint8, a reference (Frame.gray)
+    map_depth: np.ndarray | None = None  # (H, W) float32, cleaned (EdgeMap.depth)
 
     @classmethod
     def start(cls, edges, gx, gy, depth, config: Config, *, gray: np.ndarray | None = None
@@ -228,7 +231,12 @@ class PreprocessJob:
                 2 * SOBEL_MAX + 1) + (sgx.astype(np.int32) + SOBEL_MAX))
         d = np.take(depth.ravel(), flat).astype(np.float32)
         d = np.where(np.isfinite(d) & (d >= config.min_depth) & (d <= config.max_depth), d, 0.0)
-        return cls(pts, grad, mag, d.astype(np.float32), (h, w), fields, depth, codes, gray)
+        map_depth = None
+        if config.depth_residual:
+            map_depth = np.where(np.isfinite(depth) & (depth >= config.min_depth)
+                                 & (depth <= config.max_depth), depth, 0.0).astype(np.float32)
+        return cls(pts, grad, mag, d.astype(np.float32), (h, w), fields, depth, codes, gray,
+                   map_depth)
 
     def finish(self) -> Frame:
         """Make the direction codes (while the worker may still run), wait for the distance
@@ -241,7 +249,7 @@ class PreprocessJob:
             edge_mag=self.mag,
             edge_depth=self.depth,
             dist=dist,
-            edge_map=EdgeMap(dist[0], code),
+            edge_map=EdgeMap(dist[0], code, self.map_depth),
             depth=self.depth_image,
             gray=self.gray,
         )

@@ -314,7 +314,7 @@ def _stack_inputs(lanes: list[_Lane], srcs: list[_Frames], slowest: list[int], w
         kf, A, B, intr, knobs = lane.odo.solve_inputs()
         s = srcs.index(lane.frames)
         offset = np.int32(min(max(lane.position - slowest[s], 0), width - 1))
-        per_lane.append((KeyframeEdges(*(np.asarray(a) for a in kf)), np.int32(s), offset,
+        per_lane.append((KeyframeEdges(*jax.tree.map(np.asarray, kf)), np.int32(s), offset,
                          A, B, np.asarray(intr, np.float32), knobs))
     size = 1 << (len(per_lane) - 1).bit_length()
     size += -size % num_devices

@@ -22,6 +22,7 @@ from ..determinism import full_precision
 from ..frontend import features
 from ..frontend.align import TrackResult, track
 from ..frontend.chunk import track_next_jit
+from ..frontend.depth import depth_points
 from ..frontend.keyframes import keyframe_reason
 from ..frontend.selection import KeyframeEdges, keyframe_edges
 from ..geometry import inverse_np, orthonormalise_np, predict_np, scale_motion_np
@@ -482,8 +483,13 @@ class Odometry:
             mapping_ms = (time.perf_counter() - t1) * 1e3
         if self._kf is not None:
             self._previous = [*self._previous, self._kf][-(self.config.recovery_keyframes):]
-        self._kf = _Keyframe(timestamp, pose, KeyframeEdges(*(jnp.asarray(a) for a in edges)), n,
-                             frame=frame)
+        if self.config.depth_residual and frame.depth is not None:
+            edges = edges._replace(**dict(zip(("depth_pts", "depth_normals"), depth_points(
+                frame.depth, self.intrinsics, self.config.depth_points,
+                min_depth=self.config.min_depth, max_depth=self.config.max_depth,
+                seed=self.config.seed + self.num_keyframes), strict=True)))
+        self._kf = _Keyframe(timestamp, pose, KeyframeEdges(*jax.tree.map(jnp.asarray, edges)),
+                             n, frame=frame)
         self.num_keyframes += 1
         return pose, (t1 - t0) * 1e3, mapping_ms
 

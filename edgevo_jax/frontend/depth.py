@@ -1,0 +1,95 @@
+"""The optional depth residual (``Config.depth_residual``): point-to-plane ICP of keyframe
+depth points against the frame's depth map, added to the edge residual's normal equations
+(as REVO and its successors combine them).
+
+A keyframe brings M points p_k with normals n_k (keyframe camera, metres; ``depth_points``).
+At pose T = T_cur_kf the point q = T p_k projects into the frame; the nearest pixel with its
+depth, back-projected, is p_c, the residual is the distance of p_c from the
+point's plane, n_c . (q - p_c) with n_c = R n_k, expressed in pixels of the level
+(x f_l / q_z, the image-plane size of that distance) so that it is weighed, gated and
+Huber-weighted like an edge residual. Its Jacobian for the left update T <- exp(xi) T is
+f_l / q_z [n_c, q x n_c] (p_c held, as point-to-plane ICP does).
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..camera import Intrinsics
+from ..geometry import Pose
+
+#: grid step (px) of the keyframe's candidate depth points, and the largest relative depth
+#: change between a pixel's neighbours for its normal to count (a depth step is no plane)
+GRID_STEP = 4
+MAX_RELATIVE_STEP = 0.05
+
+
+def depth_points(depth: np.ndarray, intr: Intrinsics, count: int, *, min_depth: float,
+                 max_depth: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` keyframe points (3, count) with unit normals (3, count), float32, keyframe
+    camera, metres, from a depth map (H, W) (outside [min_depth, max_depth] or NaN =
+    missing): pixels on a ``GRID_STEP`` grid whose four neighbours have depth within
+    ``MAX_RELATIVE_STEP`` of it, normals from the cross product of the central differences,
+    ``count`` of them drawn with ``seed``. Padding slots (fewer candidates) have zero normals
+    (``depth_valid``)."""
+    d = np.asarray(depth, np.float64)
+    d = np.where(np.isfinite(d) & (d >= min_depth) & (d <= max_depth), d, 0.0)
+    h, w = d.shape
+    fx, fy, cx, cy = (float(v) for v in intr)
+    v, u = np.mgrid[GRID_STEP:h - 1:GRID_STEP, GRID_STEP:w - 1:GRID_STEP]
+    u, v = u.ravel(), v.ravel()
+    z, zl, zr, zu, zd = d[v, u], d[v, u - 1], d[v, u + 1], d[v - 1, u], d[v + 1, u]
+    ok = (z > 0) & (zl > 0) & (zr > 0) & (zu > 0) & (zd > 0)
+    ok &= np.maximum.reduce([abs(zl - z), abs(zr - z), abs(zu - z), abs(zd - z)]) \
+        <= MAX_RELATIVE_STEP * np.maximum(z, 1e-9)
+
+    def back(uu, vv, zz):
+        return np.stack([(uu - cx) / fx * zz, (vv - cy) / fy * zz, zz])
+
+    du = back(u + 1, v, zr) - back(u - 1, v, zl)
+    dv = back(u, v + 1, zd) - back(u, v - 1, zu)
+    n = np.cross(du, dv, axis=0)
+    norm = np.linalg.norm(n, axis=0)
+    ok &= norm > 0
+    n = n / np.maximum(norm, 1e-12)
+    p = back(u, v, z)
+    n = np.where(n[2] > 0, -n, n)  # facing the camera
+    idx = np.flatnonzero(ok)
+    if idx.size > count:
+        idx = np.sort(np.random.default_rng(seed).choice(idx, count, replace=False))
+    pts = np.zeros((3, count), np.float32)
+    normals = np.zeros((3, count), np.float32)
+    pts[2] = 1.0
+    pts[:, :idx.size], normals[:, :idx.size] = p[:, idx], n[:, idx]
+    return pts, normals
+
+
+def depth_valid(normals: jnp.ndarray) -> jnp.ndarray:
+    """(M,) which depth point slots hold a point (padding has a zero normal)."""
+    return jnp.sum(normals * normals, axis=0) > 0
+
+
+def point_to_plane(T: Pose, pts: jnp.ndarray, normals: jnp.ndarray, depth: jnp.ndarray,
+                   intr: Intrinsics, level: int
+                   ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
+    """Residuals r (M,) in pixels of ``level``, their Jacobians (6, M) and validity (M,) of
+    the keyframe depth points (3, M) with normals (3, M) against the frame's depth map
+    (H, W, metres, 0 = missing) at pose T = T_cur_kf; intr of level 0."""
+    q = T.apply(pts)
+    n = T.R @ normals
+    z = q[2]
+    zs = jnp.where(z > 1e-6, z, 1.0)
+    u = intr.fx * q[0] / zs + intr.cx
+    v = intr.fy * q[1] / zs + intr.cy
+    h, w = depth.shape
+    inside = (z > 1e-6) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
+    ui = jnp.clip(jnp.round(u), 0, w - 1).astype(jnp.int32)
+    vi = jnp.clip(jnp.round(v), 0, h - 1).astype(jnp.int32)
+    d = depth[vi, ui]
+    p_c = jnp.stack([(ui - intr.cx) / intr.fx * d, (vi - intr.cy) / intr.fy * d, d])
+    scale = jnp.sqrt(intr.fx * intr.fy) * 0.5**level / zs
+    r = scale * jnp.sum(n * (q - p_c), axis=0)
+    J = scale * jnp.concatenate([n, jnp.cross(q, n, axis=0)], axis=0)
+    ok = inside & (d > 0) & depth_valid(normals)
+    return jnp.where(ok, r, 0.0), jnp.where(ok, J, 0.0), ok
