@@ -152,14 +152,13 @@ def test_fields_per_keyframe_equal_stacked_fields(driven):
     import jax.numpy as jnp
 
     from edgevo_jax.backend.window import normal_equations, remove_keyframe
-    from edgevo_jax.image.preprocess import EdgeMap
 
     lm, _ = driven
     per_kf, _ = lm._problem()
     assert isinstance(per_kf.fields, tuple) and isinstance(per_kf.edge_map, tuple)
     stacked = per_kf._replace(
         fields=jnp.stack(per_kf.fields),
-        edge_map=EdgeMap(*(jnp.stack(xs) for xs in zip(*per_kf.edge_map, strict=True))))
+        edge_map=jax.tree.map(lambda *xs: jnp.stack(xs), *per_kf.edge_map))
     ne = jax.jit(normal_equations, static_argnames="config")
     a = jax.device_get(ne(per_kf, config=lm._mcfg))
     b = jax.device_get(ne(stacked, config=lm._mcfg))
