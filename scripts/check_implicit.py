@@ -45,7 +45,7 @@ from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.camera import Intrinsics
 from edgevo_jax.cli import BUNDLED_CLIP
 from edgevo_jax.datasets import groundtruth_pose_at, load_sequence
-from edgevo_jax.frontend.selection import KeyframeEdges, keyframe_edges
+from edgevo_jax.frontend.selection import keyframe_edges
 from edgevo_jax.geometry import inverse_np
 from edgevo_jax.image.preprocess import preprocess
 from edgevo_jax.io import json_safe, poses7_to_matrices
@@ -143,8 +143,8 @@ def main(argv: list[str] | None = None) -> int:
                     max_rejects=args.max_rejects)
     frame0 = preprocess(*seq.load_frame(0), config)
     edges = keyframe_edges(frame0, config, seed=0, intr=seq.intrinsics)
-    kf = KeyframeEdges(*(jnp.asarray(a, jnp.float64) if a.dtype.kind == "f" else jnp.asarray(a)
-                         for a in edges))
+    kf = jax.tree.map(lambda a: jnp.asarray(a, jnp.float64) if a.dtype.kind == "f"
+                      else jnp.asarray(a), edges)
     gt0 = poses7_to_matrices(groundtruth_pose_at(seq, seq.timestamps[0])[None])[0]
     results = []
     for k in (int(x) for x in args.pairs.split(",")):

@@ -16,7 +16,7 @@ from edgevo_jax.cli import BUNDLED_CLIP, main
 from edgevo_jax.datasets import load_sequence
 from edgevo_jax.frontend.align import track
 from edgevo_jax.frontend.chunk import batch_of_one, track_next
-from edgevo_jax.frontend.selection import KeyframeEdges, keyframe_edges
+from edgevo_jax.frontend.selection import keyframe_edges
 from edgevo_jax.geometry import rotation_angle_np
 from edgevo_jax.image.preprocess import frame_from_edges, preprocess
 from edgevo_jax.pipeline import odometry as tracker_module
@@ -58,7 +58,7 @@ def test_known_motion_is_recovered_on_a_real_frame(bundled, twist):
     T_true = np.asarray(jaxlie.SE3.exp(jnp.asarray(twist)).as_matrix(), np.float64)
     f1 = warped_edge_frame(f0, T_true, bundled.intrinsics, config)
     edges = keyframe_edges(f0, config, seed=0, intr=bundled.intrinsics)
-    kf = KeyframeEdges(*(jnp.asarray(a) for a in edges))
+    kf = jax.tree.map(jnp.asarray, edges)
     res = track(kf, tuple(map(jnp.asarray, f1.dist)), jax.tree.map(jnp.asarray, f1.edge_map),
                 jnp.eye(4, dtype=jnp.float32), bundled.intrinsics, config)
     err = np.linalg.inv(T_true) @ np.asarray(res.T_c_k, np.float64)
