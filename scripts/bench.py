@@ -47,7 +47,12 @@ that the peak RSS is the method's own and a crashing peer cannot take the benchm
   when the window first fills and first marginalises (each child is a fresh process without
   the CLI's compile cache); ``compiled_mean_ms`` / ``compiled_median_ms`` come from a second
   run of the same frames in the same process, every program compiled, and
-  ``repeat_identical`` says whether it gave the first run's poses exactly.
+  ``repeat_identical`` says whether it gave the first run's poses exactly. Beside each
+  median: the p90, the mean and the max (``warm_max_ms``, ``compiled_p90_ms``,
+  ``compiled_max_ms``): users feel the mean and the worst frame, not the median.
+- ``wall_s``: end to end, the method's whole run in its child process, from the tracker's
+  construction to the last pose, PNG decoding included (for edgevo the first run, with its
+  compilation; ``compiled_wall_s`` the second).
 - ``peak_rss_mib``: ``ru_maxrss`` of the child at its end (edgevo: after its first run, before
   the compiled one). Every child imports edgevo_jax
   (and so JAX and OpenCV) to read the sequence; ``baseline_rss_mib`` is the peak after
@@ -270,6 +275,11 @@ def _p90(values: Sequence[float] | np.ndarray) -> float:
     return float(np.percentile(v, 90)) if v.size else math.nan
 
 
+def _max(values: Sequence[float] | np.ndarray) -> float:
+    v = np.asarray(values, np.float64)
+    return float(v.max()) if v.size else math.nan
+
+
 def _maxrss_mib() -> float:
     """Peak resident set size of this process so far (MiB; ru_maxrss is KiB on Linux)."""
     kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -349,12 +359,14 @@ def run_peer(method: str, seq: Any, max_frames: int | None = None) -> dict[str, 
     from edgevo_jax.pipeline.run import initial_pose
 
     baseline = _maxrss_mib()
+    t0 = time.perf_counter()
     try:
         peer = make_peer(method, seq.intrinsics, seq.width, seq.height)
     except PeerMissing as err:
         return {"missing": str(err)}
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
     track = track_peer(peer, seq, n, initial_pose(seq))
+    wall_s = time.perf_counter() - t0
     warm = _warm(track.frame_ms)
     out: dict[str, Any] = {
         "kind": "peer",
@@ -367,6 +379,8 @@ def run_peer(method: str, seq: Any, max_frames: int | None = None) -> dict[str, 
         "warm_median_ms": _median(warm),
         "warm_p90_ms": _p90(warm),
         "warm_mean_ms": float(warm.mean()) if warm.size else math.nan,
+        "warm_max_ms": _max(warm),
+        "wall_s": wall_s,
         "decode_median_ms": _median(track.decode_ms[WARMUP_FRAMES:]),
         "baseline_rss_mib": baseline,
     }
@@ -389,14 +403,18 @@ def run_edgevo(overrides: Sequence[str], seq: Any, max_frames: int | None = None
 
     config = Config().with_overrides(list(overrides))
     baseline = _maxrss_mib()
+    t0 = time.perf_counter()
     run = run_sequence(seq, config, progress=False, max_frames=max_frames)
+    wall_s = time.perf_counter() - t0
     peak = _maxrss_mib()  # the method's peak: before the compiled pass below
     # the same clip again in this process: every program is compiled now (the first pass
     # compiles the window's programs mid-run, which its mean includes)
+    t0 = time.perf_counter()
     try:
         again = run_sequence(seq, config, progress=False, max_frames=max_frames)
     except Exception as err:  # the first run's numbers stand; say why the second is absent
         again, compiled_error = None, f"{type(err).__name__}: {err}"
+    compiled_wall_s = time.perf_counter() - t0 if again is not None else math.nan
     compiled = _warm(again.frame_ms) if again is not None else np.zeros(0)
     stats = summarise(run, seq)
     n = len(run.results)
@@ -418,8 +436,13 @@ def run_edgevo(overrides: Sequence[str], seq: Any, max_frames: int | None = None
         "warm_median_ms": _median(warm),
         "warm_p90_ms": _p90(warm),
         "warm_mean_ms": float(warm.mean()) if warm.size else math.nan,
+        "warm_max_ms": _max(warm),
+        "wall_s": wall_s,
         "compiled_median_ms": _median(compiled),
         "compiled_mean_ms": float(compiled.mean()) if compiled.size else math.nan,
+        "compiled_p90_ms": _p90(compiled),
+        "compiled_max_ms": _max(compiled),
+        "compiled_wall_s": compiled_wall_s,
         "repeat_identical": bool(np.array_equal(run.poses, again.poses))
         if again is not None else None,
         **({} if again is not None else {"compiled_error": compiled_error}),
@@ -516,12 +539,12 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
     """The results as a markdown table, one row per method and sequence."""
     head = ("| sequence | method | ATE RMSE (m) | RPE (m/s) | frames | lost | first frame (ms) "
             "| warm median (ms) | warm p90 (ms) | warm mean (ms) | compiled mean (ms) "
-            "| x edgevo | peak RSS (MiB) | note |")
-    lines = [head, "|" + "---|" * 14]
+            "| x edgevo | warm max (ms) | wall (s) | peak RSS (MiB) | note |")
+    lines = [head, "|" + "---|" * 16]
     for r in rows:
         if "missing" in r or "error" in r:
             note = f"missing: {r['missing']}" if "missing" in r else f"error: {r['error']}"
-            cells = [r["sequence"], r["method"]] + ["-"] * 11 + [note.replace("|", "/")]
+            cells = [r["sequence"], r["method"]] + ["-"] * 13 + [note.replace("|", "/")]
         else:
             cells = [
                 r["sequence"], r["method"], _fmt(r.get("ate_rmse_m"), ".4f"),
@@ -529,7 +552,8 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
                 str(r.get("lost", "")), _fmt(r.get("first_frame_ms"), ".0f"),
                 _fmt(r.get("warm_median_ms"), ".1f"), _fmt(r.get("warm_p90_ms"), ".1f"),
                 _fmt(r.get("warm_mean_ms"), ".1f"), _fmt(r.get("compiled_mean_ms"), ".1f"),
-                _fmt(r.get("ratio_to_edgevo"), ".2f"), _fmt(r.get("peak_rss_mib"), ".0f"),
+                _fmt(r.get("ratio_to_edgevo"), ".2f"), _fmt(r.get("warm_max_ms"), ".1f"),
+                _fmt(r.get("wall_s"), ".2f"), _fmt(r.get("peak_rss_mib"), ".0f"),
                 "; ".join(filter(None, [
                     "config: " + ";".join(r["config_overrides"])
                     if r.get("config_overrides") else "",

@@ -31,7 +31,7 @@ def bench():
 
 ROW_KEYS = {"method", "sequence", "path", "kind", "api", "frames", "lost", "ate_rmse_m",
             "rpe_m_per_s", "first_frame_ms", "warm_median_ms", "warm_p90_ms",
-            "baseline_rss_mib"}
+            "warm_mean_ms", "warm_max_ms", "wall_s", "baseline_rss_mib"}
 
 
 def test_cv2_rgb_tracks_the_bundled_clip(bench):
@@ -45,6 +45,8 @@ def test_cv2_rgb_tracks_the_bundled_clip(bench):
     assert math.isfinite(row["ate_rmse_m"]) and row["ate_rmse_m"] < 0.05
     assert math.isnan(row["rpe_m_per_s"])  # 5 frames span 0.13 s
     assert row["warm_median_ms"] > 0 and row["first_frame_ms"] > 0
+    assert row["warm_median_ms"] <= row["warm_p90_ms"] <= row["warm_max_ms"]
+    assert row["wall_s"] * 1e3 > row["first_frame_ms"] + row["warm_median_ms"]
     json.dumps(bench.json_safe(row), allow_nan=False)
 
 
@@ -56,6 +58,8 @@ def test_edgevo_row_has_a_compiled_pass_and_keeps_the_first_run_without_it(bench
     row = bench.run_method("edgevo", BUNDLED_CLIP, max_frames=4)
     assert row["repeat_identical"] is True and math.isfinite(row["compiled_mean_ms"])
     assert "compiled_error" not in row
+    assert row["compiled_median_ms"] <= row["compiled_p90_ms"] <= row["compiled_max_ms"]
+    assert row["wall_s"] > 0 and row["compiled_wall_s"] > 0
 
     real, calls = runner.run_sequence, []
 
