@@ -54,7 +54,8 @@ from ..frontend.selection import KeyframeEdges
 from ..hostmem import aligned_stack, to_host
 from ..image.interp import stack_edge_maps
 from ..image.preprocess import Frame, preprocess
-from .odometry import FrameResult, FrameResults, Odometry
+from .odometry import Odometry
+from .results import FrameResult, FrameResults
 from .run import conclude_chunk, initial_pose
 
 #: Config fields that change the pre-processed frames (runs differing in them do not share).

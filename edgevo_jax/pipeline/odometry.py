@@ -29,10 +29,10 @@ from ..geometry import inverse_np, orthonormalise_np, predict_np, scale_motion_n
 from ..hostmem import aligned_array, to_host
 from ..image.preprocess import Frame, preprocess
 from ..learn.params import Params, solve_knobs_of
+from .results import LOST, OK, WEAK, FrameResult
 
 _track_jit = full_precision(jax.jit(track, static_argnames="config"))
 
-OK, WEAK, LOST = "OK", "WEAK", "LOST"
 #: frames (not lost) whose highest inlier share is the reference for the share ratios of ``Config``
 SHARE_HISTORY = 5
 
@@ -40,55 +40,6 @@ SHARE_HISTORY = 5
 def inlier_share(res) -> float:
     """Level-0 inliers per keyframe edge in view of a TrackResult (0 with none in view)."""
     return float(res.inliers) / max(float(res.visible), 1.0)
-
-
-@dataclass(frozen=True)
-class FrameResult:
-    """What tracking one frame gives: pose T_world_cam (4, 4, float64), tracking state
-    (``OK``; ``WEAK``: usable but doubtful; ``LOST``: the pose is the constant-velocity
-    prediction, never NaN) and the reason when not OK, covariance (6, 6) of a left twist [v, w]
-    of T_cur_kf, level-0 inliers, whether the frame became a keyframe (and why), the number of
-    keyframe edges it was tracked with, the edge selection and local mapping times when it
-    became a keyframe (mapping None when off), and host timings in ms (preprocess; solve =
-    from dispatch to read-back; total). A keyframe's pose is the window's refined one."""
-
-    timestamp: float
-    pose: np.ndarray
-    state: str
-    reason: str | None
-    inliers: int
-    covariance: np.ndarray | None
-    keyframe: str | None
-    edges_used: int
-    select_ms: float | None
-    mapping_ms: float | None
-    preprocess_ms: float
-    solve_ms: float
-    total_ms: float
-
-
-class FrameResults:
-    """Mixin for a run's ``results`` (list of FrameResult): its timestamps and poses; a run
-    also has ``config`` and ``num_keyframes``, and ``summary_fields`` (its own statistics
-    for ``run.summarise``)."""
-
-    results: list[FrameResult]
-    config: Config | None
-    num_keyframes: int
-
-    def summary_fields(self) -> dict:
-        """Statistics of this kind of run beyond the common ones (none here)."""
-        return {}
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        """(N,) timestamps of the tracked frames (s)."""
-        return np.array([r.timestamp for r in self.results])
-
-    @property
-    def poses(self) -> np.ndarray:
-        """(N, 4, 4) T_world_cam of the tracked frames."""
-        return np.array([r.pose for r in self.results]).reshape(-1, 4, 4)
 
 
 @dataclass(frozen=True)

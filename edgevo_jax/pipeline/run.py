@@ -33,7 +33,8 @@ from ..image.preprocess import Frame, start_preprocess
 from ..io import TrajectoryWriter, matrices_to_poses7, poses7_to_matrices
 from ..learn.params import Params
 from ..metrics import ate, rpe
-from .odometry import LOST, OK, WEAK, FrameResult, FrameResults, Odometry
+from .odometry import Odometry
+from .results import LOST, OK, WEAK, FrameResult, FrameResults
 
 
 @dataclass

@@ -1,0 +1,61 @@
+"""What tracking gives per frame: the tracking states, ``FrameResult`` and the ``FrameResults``
+mixin of a run's results (timestamps, poses)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import Config
+
+OK, WEAK, LOST = "OK", "WEAK", "LOST"
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """What tracking one frame gives: pose T_world_cam (4, 4, float64), tracking state
+    (``OK``; ``WEAK``: usable but doubtful; ``LOST``: the pose is the constant-velocity
+    prediction, never NaN) and the reason when not OK, covariance (6, 6) of a left twist [v, w]
+    of T_cur_kf, level-0 inliers, whether the frame became a keyframe (and why), the number of
+    keyframe edges it was tracked with, the edge selection and local mapping times when it
+    became a keyframe (mapping None when off), and host timings in ms (preprocess; solve =
+    from dispatch to read-back; total). A keyframe's pose is the window's refined one."""
+
+    timestamp: float
+    pose: np.ndarray
+    state: str
+    reason: str | None
+    inliers: int
+    covariance: np.ndarray | None
+    keyframe: str | None
+    edges_used: int
+    select_ms: float | None
+    mapping_ms: float | None
+    preprocess_ms: float
+    solve_ms: float
+    total_ms: float
+
+
+class FrameResults:
+    """Mixin for a run's ``results`` (list of FrameResult): its timestamps and poses; a run
+    also has ``config`` and ``num_keyframes``, and ``summary_fields`` (its own statistics
+    for ``run.summarise``)."""
+
+    results: list[FrameResult]
+    config: Config | None
+    num_keyframes: int
+
+    def summary_fields(self) -> dict:
+        """Statistics of this kind of run beyond the common ones (none here)."""
+        return {}
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        """(N,) timestamps of the tracked frames (s)."""
+        return np.array([r.timestamp for r in self.results])
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(N, 4, 4) T_world_cam of the tracked frames."""
+        return np.array([r.pose for r in self.results]).reshape(-1, 4, 4)
