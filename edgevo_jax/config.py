@@ -67,6 +67,9 @@ class Config:
     active_per_keyframe: int = 256  # active edge slots each keyframe brings to the window
     activation_cell: int = 20  # px (paper)
     activation_max_angle_deg: float = 30.0  # gradient agreement for activation (paper)
+    # frames after a keyframe at which tracking takes its refined pose from the window, which
+    # runs beside tracking on a worker thread (pipeline/mapping.py); 0: inline
+    mapping_lag: int = 4
     mapping_iterations: int = 5  # pose-only LM tries, then as many joint ones
     mapping_intrinsics: bool = False  # refine fx, fy, cx, cy in the window, track with them
     drop_visible_ratio: float = 0.05  # a keyframe with fewer edges in view of the newest goes
@@ -98,6 +101,8 @@ class Config:
             raise ValueError("Config.window_size must be at least 3 (the newest two stay)")
         if not 0.0 <= self.lost_share_ratio <= self.doubt_share_ratio < 1.0:
             raise ValueError("Config needs 0 <= lost_share_ratio <= doubt_share_ratio < 1")
+        if self.mapping_lag < 0:
+            raise ValueError("Config.mapping_lag must be >= 0 (0: the window runs inline)")
         if not self.activation_depth_step >= 0:
             raise ValueError("Config.activation_depth_step must be >= 0 (0: no depth test)")
         for name in ("active_per_keyframe", "activation_cell", "mapping_iterations",

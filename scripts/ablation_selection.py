@@ -29,7 +29,7 @@ What is measured, per run:
 
 Compiled XLA programs are kept on disk like the CLI does (``EDGEVO_CACHE_DIR``, default
 ``~/.cache/edgevo_jax``; empty string: off), so that runs which differ only in the seed
-do not compile again; compilation never enters the warm times, only ``compile_s``.
+do not compile again; compilation never enters the warm times, only ``startup_s``.
 
 Aggregates over seeds, per (sequence, mode, budget): mean and std (ddof 1; null for one
 run) of the ATE, median of the per-run median times, mean of the edges used, median of the
@@ -221,7 +221,7 @@ def one_run(seq: TumSequence, mode: str, num_edges: int | None, seed: int,
         "select_ms_median": _median(select_ms[1:]),
         "select_ms_first": select_ms[0] if select_ms else math.nan,
         "edges_used_mean": s["edges_used_mean"],
-        "compile_s": s["compile_s"],
+        "startup_s": s["startup_s"],
         "wall_s": wall_s,
         **({"ground_truth_note": s["ground_truth_note"]} if "ground_truth_note" in s else {}),
     }

@@ -234,6 +234,35 @@ class LocalMap:
             stats.update(self._refine())
         return self.window[-1].pose, stats
 
+    def warm_up(self) -> None:
+        """Compile (or load from the compilation cache) and run once each jitted step of
+        the window and the host-to-device conversions around them, on a throwaway window of
+        empty keyframes in the shapes of this configuration and image size: no keyframe of
+        the run waits for a compilation. This window is not touched."""
+        cfg, (height, width) = self.config, self.shape
+        n, K = cfg.window_size, cfg.num_edges
+        field0 = jnp.zeros((height, width), jnp.float32)
+        edge_map = EdgeMap(field0, jnp.zeros((height, width), jnp.uint8))
+
+        def empty() -> _WindowKeyframe:
+            return _WindowKeyframe(
+                pose=np.eye(4), uv=np.zeros((2, K), np.float32), rho=np.ones(K, np.float32),
+                grad=np.zeros((2, K), np.float32), valid=np.zeros(K, bool), dist0=field0,
+                edge_map=edge_map)
+
+        scratch = LocalMap(self.config, self.intrinsics, self.shape)
+        scratch.window = [empty() for _ in range(n - 1)]
+        scratch._activate(empty())
+        scratch.window.append(empty())
+        problem, _ = scratch._problem()
+        prior = _marginalize_first_jit(problem, self._numbers, no_prior(problem),
+                                       np.arange(n, dtype=np.int32), config=self._structure)
+        prior = _marginalize_stale_jit(problem, self._numbers,
+                                       np.ones((n - 1, cfg.active_per_keyframe), bool), prior,
+                                       config=self._structure)
+        scratch.prior = _append_to_prior_jit(prior, np.eye(4, dtype=np.float32))
+        scratch._refine()
+
     # -- steps ----------------------------------------------------------------------------
     def _activate(self, new: _WindowKeyframe) -> None:
         """Re-project the window's edges into the new keyframe; count tracks; activate."""

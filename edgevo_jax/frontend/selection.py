@@ -325,17 +325,50 @@ def select(
     ranges[0] = n
     ranges[1:1 + starts.size] = starts
     ranges[1 + size:1 + size + counts.size] = counts
+    idx, taken = to_host(_run_device(points, ranges, T_prior, intr, seed, config, width=width,
+                                     height=height, reobs_a=reobs_a))
+    return np.sort(order[idx[taken]])
+
+
+def _run_device(points: np.ndarray, ranges: np.ndarray, T_prior: np.ndarray, intr: Intrinsics,
+                seed: int, config: Config, *, width: int, height: int,
+                reobs_a: float | None):
+    """``_select_device`` with the static options of ``config`` (device arrays out)."""
+    size = points.shape[1]
     # (N / k) log(1 / eps) samples per greedy step (N: the padded size, a static number)
     samples = math.ceil(size / config.num_edges * math.log(1 / config.greedy_epsilon))
-    idx, taken = _select_device(
-        points, ranges, T_prior.astype(np.float32), np.asarray(intr, np.float32),
+    return _select_device(
+        points, ranges, np.asarray(T_prior, np.float32), np.asarray(intr, np.float32),
         np.uint32(seed & 0xFFFFFFFF), width=width, height=height, mode=config.selection,
         num_edges=config.num_edges, max_per_cell=config.max_per_cell,
         lam=float(config.logdet_lambda),
         a=float(config.canny_high if reobs_a is None else reobs_a), samples=samples,
     )
-    idx, taken = to_host((idx, taken))
-    return np.sort(order[idx[taken]])
+
+
+def bucket_sizes(config: Config) -> list[int]:
+    """Every padded size (``_bucket``) a keyframe can meet: the selection's candidate
+    buffers, and with ``selection=all`` the tracked slots."""
+    sizes, n = [], 1
+    while not sizes or sizes[-1] < config.max_edges:
+        sizes.append(_bucket(n, config.max_edges))
+        n = sizes[-1] + 1
+    return sizes
+
+
+def warm_up(config: Config, *, intr: Intrinsics, width: int, height: int,
+            reobs_a: float | None = None) -> None:
+    """Compile (or load from the compilation cache) and run once the selection's device
+    program for every candidate buffer size (``bucket_sizes``), on empty buffers: no
+    keyframe of the run waits for a compilation. Nothing to do for ``all`` and ``random``."""
+    if config.selection not in ("spg", "greedy"):
+        return
+    for size in bucket_sizes(config):
+        points = np.zeros((6, size), np.float32)
+        points[2] = 1.0
+        jax.block_until_ready(_run_device(
+            points, np.zeros(2 * size + 1, np.int32), np.eye(4), intr, 0, config,
+            width=width, height=height, reobs_a=reobs_a))
 
 
 def pack_edges(cands: Candidates, idx: np.ndarray, size: int) -> KeyframeEdges:
@@ -374,7 +407,6 @@ def keyframe_edges(
     h, w = frame.shape
     idx = select(cands, config, T_prior=T_prior, intr=intr, width=w, height=h, seed=seed,
                  reobs_a=reobs_a)
-    slots = config.edge_slots
-    if config.selection == "all":
-        slots = min(config.max_edges, max(1024, 1 << max(idx.size - 1, 0).bit_length()))
+    slots = _bucket(idx.size, config.max_edges) if config.selection == "all" \
+        else config.edge_slots
     return pack_edges(cands, idx, slots)

@@ -288,6 +288,7 @@ def evaluate(
     finally:
         bar.close()
         for lane in mine:
+            lane.odo.close()
             lane.run.num_keyframes = lane.odo.num_keyframes
     return BatchResult(runs=[lane.run for lane in mine], wall_s=time.perf_counter() - t_start,
                        calls=calls, solved=solved, devices=[str(d) for d in devices])

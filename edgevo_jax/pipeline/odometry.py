@@ -7,6 +7,7 @@ The jitted solve sees fixed shapes only, so it compiles once per configuration a
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 
@@ -14,12 +15,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..backend.local_map import LocalMap
 from ..camera import Intrinsics
 from ..config import Config
 from ..derive import solve_knobs, solve_structure
 from ..determinism import full_precision
-from ..frontend import features
+from ..frontend import features, selection
 from ..frontend.align import TrackResult, track
 from ..frontend.chunk import track_next_jit
 from ..frontend.depth import depth_points
@@ -29,17 +29,29 @@ from ..geometry import inverse_np, orthonormalise_np, predict_np, scale_motion_n
 from ..hostmem import aligned_array, to_host
 from ..image.preprocess import Frame, preprocess
 from ..learn.params import Params, solve_knobs_of
+from .mapping import Mapped, Mapper
 from .results import LOST, OK, WEAK, FrameResult
 
 _track_jit = full_precision(jax.jit(track, static_argnames="config"))
 
 #: frames (not lost) whose highest inlier share is the reference for the share ratios of ``Config``
 SHARE_HISTORY = 5
+#: two alignments agree (converged into one minimum) within this translation (m) and rotation
+#: (degrees): ~2 px at 1.5 m for f ~ 530 px, under the spacing of distinct minima (edges)
+AGREE_M, AGREE_DEG = 0.005, 0.5
 
 
 def inlier_share(res) -> float:
     """Level-0 inliers per keyframe edge in view of a TrackResult (0 with none in view)."""
     return float(res.inliers) / max(float(res.visible), 1.0)
+
+
+def _agree(a, b) -> bool:
+    """Whether two TrackResults' poses T_cur_kf agree within ``AGREE_M``, ``AGREE_DEG``."""
+    D = inverse_np(np.asarray(a.T_c_k, np.float64)) @ np.asarray(b.T_c_k, np.float64)
+    cos = np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    return bool(np.linalg.norm(D[:3, 3]) <= AGREE_M
+                and np.degrees(np.arccos(cos)) <= AGREE_DEG)
 
 
 @dataclass(frozen=True)
@@ -62,7 +74,8 @@ class _Keyframe:
     num_edges: int
     inlier_counts: list[int] = field(default_factory=list)
     frame: Frame | None = None  # its frame (gray image and depth for feature hypotheses)
-    keypoints: features.Keypoints | None = None  # detected when recovery first needs them
+    # keypoints by kind ("orb", "sift"), detected when recovery first needs them
+    keypoints: dict[str, features.Keypoints] = field(default_factory=dict)
 
 
 class Odometry:
@@ -79,6 +92,9 @@ class Odometry:
     ``track`` is synchronous. ``submit`` + ``complete`` split it: ``submit`` dispatches the
     device solve and returns at once, so the caller can prepare the next frame on another
     core before ``complete`` reads the result back (one frame in flight at a time).
+    With ``Config.mapping`` the local window refines each keyframe beside tracking, on a
+    worker thread (``pipeline.mapping``; ``Config.mapping_lag`` 0: inline); ``close()`` (or a
+    ``with`` block) stops it.
     """
 
     def __init__(
@@ -98,7 +114,11 @@ class Odometry:
         self._last_t: float | None = None
         self._in_flight = False
         self.num_keyframes = 0
-        self.local_map: LocalMap | None = None  # made with the first keyframe (image size)
+        self._mapper: Mapper | None = None  # made with the first keyframe (image size)
+        self._index = 0  # frames concluded so far (the mapping lag counts in them)
+        self._map_ms = 0.0  # the tracker's time on the local map in the current frame
+        self._intrinsics_moved = False  # the window's intrinsics were taken in this frame
+        self.warm_up_ms: float | None = None  # time of ``_warm_up`` (at the first keyframe)
         self._previous: list[_Keyframe] = []  # earlier keyframes, for recovery after a loss
         self._shape: tuple[int, int] | None = None  # (H, W) of the frames seen by ``track``
         # the solve's numbers, passed as (traced) arrays, and its static part: configurations
@@ -152,6 +172,29 @@ class Odometry:
         res = to_host(pending.output)
         return self._conclude(pending, res, time.perf_counter())[0]
 
+    def close(self) -> None:
+        """Stop the local map's worker thread (refinements not taken yet are dropped)."""
+        if self._mapper is not None:
+            self._mapper.close()
+
+    def __enter__(self) -> Odometry:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def local_map(self):
+        """The local window (``backend.local_map.LocalMap``), None before the first keyframe
+        or with ``Config.mapping`` off. Beside tracking, its worker may be changing it: read
+        it after ``close()``."""
+        return None if self._mapper is None else self._mapper.local_map
+
+    @property
+    def mapping_worker_ms(self) -> list[float]:
+        """The local window's time per keyframe taken so far (ms, in order)."""
+        return [] if self._mapper is None else list(self._mapper.worker_ms)
+
     @property
     def has_keyframe(self) -> bool:
         """Whether a keyframe exists (frames are solved against it from then on)."""
@@ -198,18 +241,23 @@ class Odometry:
     def _first(self, pending: _Pending) -> FrameResult:
         """The first frame (or one while there is no usable keyframe): it becomes the
         keyframe when it has enough edges with depth."""
+        self._start_frame()
         made_kf = self._make_keyframe(pending.frame, pending.timestamp, pending.predicted)
         pose = pending.predicted if made_kf is None else made_kf[0]
         self._push(pose, pending.timestamp)
         state, reason = (OK, None) if made_kf else (LOST, "no edges with depth")
         if self._kf is not None:
             self._rel = self._relative_from_world()
+            if self.warm_up_ms is None:
+                self._warm_up(pending.frame)
         return self._result(pending, pose, state, reason, 0, None,
                             "first" if made_kf else None, 0, made_kf, time.perf_counter())
 
     def _conclude(self, pending: _Pending, res, t_solve: float) -> tuple[FrameResult, bool]:
         """State, recovery, keyframe decision and pose of a solved frame (see ``accept``)."""
         frame, timestamp = pending.frame, pending.timestamp
+        if self._start_frame():  # refined keyframe poses taken: the prediction moved with them
+            pending = dataclasses.replace(pending, predicted=self._predict())
         kf = start_kf = self._kf
         solved = res
         lost = self._lost_reason(frame, res)
@@ -243,14 +291,18 @@ class Odometry:
             weak = self._weak_reason(frame, res)
             if kf is not self._kf:  # recovered against an earlier keyframe: it takes over
                 self._kf = kf
-        else:
-            pose, reason = pending.predicted, "lost"  # predicted (constant velocity), flagged
+            if reason and self._take_mapped(None):  # a new keyframe: from refined poses only
+                pose = kf.pose @ inverse_np(orthonormalise_np(T_c_k))
+        else:  # predicted (constant velocity), flagged
+            reason = "lost"
+            pose = self._predict() if self._take_mapped(None) else pending.predicted
         used = kf.num_edges
         made_kf = self._make_keyframe(frame, timestamp, pose) if reason else None
         if made_kf is not None:
             pose = made_kf[0]  # refined in the window
         self._push(pose, timestamp)
-        plain = lost is None and kf is start_kf and made_kf is None and res is solved
+        plain = (lost is None and kf is start_kf and made_kf is None and res is solved
+                 and not self._intrinsics_moved)
         # the device predicts the next frame from A, B: the solve's own float32 pose when
         # nothing changed (as the scan carries it), else from the host's world poses
         self._rel = ((np.asarray(res.T_c_k, np.float32), self._rel[0]) if plain
@@ -259,6 +311,66 @@ class Odometry:
         state = LOST if lost else (WEAK if weak else OK)
         return self._result(pending, pose, state, lost or weak, inliers, cov,
                             reason if made_kf else None, used, made_kf, t_solve), plain
+
+    def _warm_up(self, frame: Frame) -> None:
+        """At the first keyframe, before any frame is tracked: compile or load, and run once,
+        every program the run can need (the per-frame solve and the recovery's, for each
+        slot count a keyframe can have; the selection for each candidate buffer size; the
+        window's steps, on its worker), so that no frame waits for one. The tracking state is
+        not touched: the keyframe's frame is solved against itself and the result dropped."""
+        t0 = time.perf_counter()
+        warm_map = self._mapper.warm_up() if self._mapper is not None else None
+        kf, (A, B) = self._kf, self._rel
+        slots = selection.bucket_sizes(self.config) if self.config.selection == "all" \
+            else [kf.edges.valid.shape[0]]
+        intr, knobs = self._device_constants()
+        none = selection.Candidates(*(np.zeros(s, np.float32) for s in ((2, 0), 0, (2, 0), 0)))
+        for size in slots:
+            edges = kf.edges if size == kf.edges.valid.shape[0] else kf.edges._replace(
+                **{k: v for k, v in selection.pack_edges(none, np.zeros(0, int), size)
+                   ._asdict().items() if v is not None})
+            jax.block_until_ready(track_next_jit(edges, frame.dist, frame.edge_map, A, B, intr,
+                                                 knobs, config=self._static))
+            self._align(dataclasses.replace(kf, edges=edges), frame, np.eye(4))
+        h, w = frame.shape
+        selection.warm_up(self.config, intr=self.intrinsics, width=w, height=h,
+                          reobs_a=self._reobs_a)
+        if warm_map is not None:
+            warm_map.result()
+        self.warm_up_ms = (time.perf_counter() - t0) * 1e3
+
+    # -- the local map beside tracking (pipeline.mapping) ------------------------------------
+    def _start_frame(self) -> bool:
+        """Count the frame being concluded and take the keyframe refinements due at it;
+        whether any was taken."""
+        self._index += 1
+        self._map_ms, self._intrinsics_moved = 0.0, False
+        return self._take_mapped(self._index)
+
+    def _take_mapped(self, frame_index: int | None) -> bool:
+        """Apply the local map's refinements due at ``frame_index`` (None: all handed over,
+        before a new keyframe is made); whether any was applied. A refined keyframe takes
+        its new pose; when it is the current keyframe the last two frame poses move with it
+        (their motion relative to it, which the device predicts from, is unchanged)."""
+        if self._mapper is None:
+            return False
+        t0 = time.perf_counter()
+        taken = self._mapper.due(frame_index)
+        for m in taken:
+            self._apply_mapped(m)
+        if taken:
+            self._map_ms += (time.perf_counter() - t0) * 1e3
+        return bool(taken)
+
+    def _apply_mapped(self, m: Mapped) -> None:
+        kf: _Keyframe = m.key
+        if kf is self._kf:
+            correction = m.pose @ inverse_np(kf.pose)
+            self._poses = [correction @ p for p in self._poses]
+        kf.pose = m.pose
+        if self.config.mapping_intrinsics and tuple(m.intrinsics) != tuple(self.intrinsics):
+            self.intrinsics = m.intrinsics
+            self._intrinsics_moved = True  # solves made with the old ones are stale
 
     def _reference_share(self) -> float | None:
         """The highest inlier share (``inlier_share``) of the last ``SHARE_HISTORY`` frames
@@ -307,11 +419,13 @@ class Odometry:
         Against the current keyframe, in order of cost: the keyframe's own pose, the last
         frame's (no motion), constant velocity scaled by the frames' time steps, doubled
         and halved; then, where the frame and the keyframe have their gray images, the pose
-        of matched SIFT keypoints (``features.relative_pose``: motions far beyond the edge
-        alignment's basin); then the earlier keyframes kept, from the prediction and the
-        same starts. Results are compared by inlier share (``inlier_share``); the search stops
-        once the best is usable and no longer under ``Config.doubt_share_ratio`` x the
-        reference share."""
+        of matched ORB, then SIFT keypoints (``features.relative_pose``: motions far beyond
+        the edge alignment's basin; ORB is ~10x cheaper, SIFT finds poses across wider
+        motions); then the earlier keyframes kept, from the prediction and the same starts.
+        Results are compared by inlier share (``inlier_share``); the search stops once the
+        best is usable and no longer under ``Config.doubt_share_ratio`` x the reference
+        share, or when the ORB start, independent evidence, converges to the first solve's
+        pose (``AGREE_M``, ``AGREE_DEG``): the doubt came from the scene, not the basin."""
         last = self._poses[-1]
         starts = [last]
         if len(self._poses) == 2:
@@ -336,11 +450,19 @@ class Odometry:
             guesses = [kf.pose, *starts] if kf is self._kf else [pending.predicted, *starts]
             for T_w_c in guesses:
                 better(kf, self._align(kf, frame, inverse_np(T_w_c) @ kf.pose))
+            confirmed = False
             if kf is self._kf and not settled() and self.config.recovery_features:
-                T_c_k = self._feature_start(kf, frame)
-                if T_c_k is not None:
-                    better(kf, self._align(kf, frame, T_c_k))
-            if settled():
+                for kind in ("orb", "sift"):
+                    T_c_k = self._feature_start(kf, frame, kind)
+                    if T_c_k is None:
+                        continue
+                    out = self._align(kf, frame, T_c_k)
+                    better(kf, out)
+                    confirmed = kind == "orb" and first is not None and _agree(out, first) \
+                        and self._lost_reason(frame, out) is None
+                    if confirmed or settled():
+                        break
+            if confirmed or settled():
                 break
         return best if best is not None and best[1] is not first else None
 
@@ -350,17 +472,18 @@ class Odometry:
             kf.edges, frame.dist, frame.edge_map, np.asarray(T_c_k, np.float32),
             self.intrinsics, config=self._static, knobs=self.knobs))
 
-    def _feature_start(self, kf: _Keyframe, frame: Frame) -> np.ndarray | None:
-        """T_cur_kf from SIFT keypoints matched between the keyframe and the frame (the
-        keyframe's keypoints are detected once), or None without gray images or a pose."""
+    def _feature_start(self, kf: _Keyframe, frame: Frame, kind: str) -> np.ndarray | None:
+        """T_cur_kf from keypoints of ``kind`` (``features.detect``) matched between the
+        keyframe and the frame (the keyframe's are detected once), or None without gray
+        images or a pose."""
         if frame.gray is None or kf.frame is None or kf.frame.gray is None \
                 or kf.frame.depth is None:
             return None
-        if kf.keypoints is None:
-            kf.keypoints = features.detect(kf.frame.gray)
+        if kind not in kf.keypoints:
+            kf.keypoints[kind] = features.detect(kf.frame.gray, kind=kind)
         return features.relative_pose(
-            kf.keypoints, kf.frame.depth, features.detect(frame.gray), self.intrinsics,
-            min_depth=self.config.min_depth, max_depth=self.config.max_depth)
+            kf.keypoints[kind], kf.frame.depth, features.detect(frame.gray, kind=kind),
+            self.intrinsics, min_depth=self.config.min_depth, max_depth=self.config.max_depth)
 
     # -- internals ------------------------------------------------------------------------
     def _check_frame(self, rgb, depth, timestamp) -> None:
@@ -411,10 +534,10 @@ class Odometry:
         self._times = (self._times + [timestamp])[-2:]
 
     def _make_keyframe(self, frame: Frame, timestamp: float, pose: np.ndarray
-                       ) -> tuple[np.ndarray, float, float | None] | None:
+                       ) -> tuple[np.ndarray, float] | None:
         """Make the frame the keyframe: select its edges, hand it to the local map. Returns
-        its (refined) pose, the selection and mapping times (ms), or None when it has too few
-        usable edges (the old keyframe stays)."""
+        its pose (refined already when the map runs inline) and the selection time (ms), or
+        None when it has too few usable edges (the old keyframe stays)."""
         t0 = time.perf_counter()
         # prior motion for the selection: constant velocity, T_next_kf = T_w_kf^-1 T_w_prev
         T_prior = inverse_np(pose) @ self._poses[-1] if self._poses else np.eye(4)
@@ -424,14 +547,15 @@ class Odometry:
         if n < self.config.min_inliers:
             return None
         t1 = time.perf_counter()
-        mapping_ms = None
+        kf = _Keyframe(timestamp, pose, None, n, frame=frame)
         if self.config.mapping:
-            if self.local_map is None:
-                self.local_map = LocalMap(self.config, np.asarray(self.intrinsics), frame.shape)
-            pose, _ = self.local_map.add_keyframe(pose, edges, frame)
-            if self.config.mapping_intrinsics:
-                self.intrinsics = self.local_map.camera
-            mapping_ms = (time.perf_counter() - t1) * 1e3
+            if self._mapper is None:
+                self._mapper = Mapper(self.config, self.intrinsics, frame.shape)
+            mapped = self._mapper.add(kf, pose, edges, frame, self._index)
+            if mapped is not None:  # inline: refined already
+                self._apply_mapped(mapped)
+                pose = kf.pose
+            self._map_ms += (time.perf_counter() - t1) * 1e3
         if self._kf is not None:
             self._previous = [*self._previous, self._kf][-(self.config.recovery_keyframes):]
         if self.config.depth_residual and frame.depth is not None:
@@ -439,10 +563,10 @@ class Odometry:
                 frame.depth, self.intrinsics, self.config.depth_points,
                 min_depth=self.config.min_depth, max_depth=self.config.max_depth,
                 seed=self.config.seed + self.num_keyframes), strict=True)))
-        self._kf = _Keyframe(timestamp, pose, KeyframeEdges(*jax.tree.map(jnp.asarray, edges)),
-                             n, frame=frame)
+        kf.edges = KeyframeEdges(*jax.tree.map(jnp.asarray, edges))
+        self._kf = kf
         self.num_keyframes += 1
-        return pose, (t1 - t0) * 1e3, mapping_ms
+        return pose, (t1 - t0) * 1e3
 
     def _result(self, pending, pose, state, reason, inliers, cov, kf, used, made_kf,
                 t_solve) -> FrameResult:
@@ -452,7 +576,8 @@ class Odometry:
             timestamp=pending.timestamp, pose=pose, state=state, reason=reason, inliers=inliers,
             covariance=cov, keyframe=kf, edges_used=used,
             select_ms=made_kf[1] if made_kf else None,
-            mapping_ms=made_kf[2] if made_kf else None,
+            mapping_ms=self._map_ms if self._mapper is not None and (
+                made_kf or self._map_ms > 0.0) else None,
             preprocess_ms=pending.preprocess_ms, solve_ms=solve_ms,
             total_ms=pending.preprocess_ms + (t_end - pending.t_submit) * 1e3,
         )

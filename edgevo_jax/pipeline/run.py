@@ -14,6 +14,7 @@ state.
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -41,35 +42,42 @@ from .results import LOST, OK, WEAK, FrameResult, FrameResults
 class RunResult(FrameResults):
     """A finished (or interrupted) run: per-frame results in order, the wall time of each
     frame with image decoding excluded (ms; with pipelining this is the frame period), the
-    decode times (ms), and the first tracked frame's time, which includes compilation (s)."""
+    decode times (ms); the start-up (s): from the start (``run_sequence``'s ``started``) to
+    the first pose, which includes ``warm_up_s``, the tracker's compiling or loading of every
+    program the run needs (``Odometry._warm_up``); the local window's time per keyframe on
+    its worker (ms)."""
 
     results: list[FrameResult] = field(default_factory=list)
     frame_ms: list[float] = field(default_factory=list)
     decode_ms: list[float] = field(default_factory=list)
-    compile_s: float = float("nan")
+    startup_s: float = float("nan")
+    warm_up_s: float = float("nan")
     num_keyframes: int = 0
+    mapping_worker_ms: list[float] = field(default_factory=list)
     stopped_at: int | None = None  # index of the first frame not processed, if interrupted
     config: Config | None = None
 
     def summary_fields(self) -> dict:
         """Timing statistics and the per-frame record (``per_frame_record``) for
-        ``summarise``. ms_per_frame covers warm frames: from the
-        third on (the first only becomes the keyframe, the second compiles), image decoding
-        excluded; select_ms covers every keyframe but the first (whose selection compiles);
-        mapping_ms every keyframe after the first window_size + 1 (activation, refinement
-        and marginalisation compile on those)."""
-        warm = np.asarray(self.frame_ms[2:], np.float64)
-        mapping_warm = self.config.window_size + 1 if self.config is not None else 0
+        ``summarise``. The first frame carries the start-up (``startup_s``); the frame
+        statistics cover every frame after it (keyframes and searches included; image
+        decoding excluded): ms_per_frame, its parts, select_ms (keyframes), mapping_ms (the
+        tracker's time on the local map where it spent any: inline the window step, beside
+        tracking the hand-over and any wait) and mapping_worker_ms (the window's step per
+        keyframe on its worker)."""
+        warm = np.asarray(self.frame_ms[1:], np.float64)
         out = {
-            "compile_s": self.compile_s,
+            "startup_s": self.startup_s,
+            "warm_up_s": self.warm_up_s,
             "ms_per_frame": _describe(warm),
-            "preprocess_ms": _describe([r.preprocess_ms for r in self.results[2:]]),
-            "solve_wait_ms": _describe([r.solve_ms for r in self.results[2:]]),
-            "decode_ms": _describe(self.decode_ms[2:]),
-            "select_ms": _describe(
-                [r.select_ms for r in self.results if r.select_ms is not None][1:]),
-            "mapping_ms": _describe(
-                [r.mapping_ms for r in self.results if r.mapping_ms is not None][mapping_warm:]),
+            "preprocess_ms": _describe([r.preprocess_ms for r in self.results[1:]]),
+            "solve_wait_ms": _describe([r.solve_ms for r in self.results[1:]]),
+            "decode_ms": _describe(self.decode_ms[1:]),
+            "select_ms": _describe([r.select_ms for r in self.results[1:]
+                                    if r.select_ms is not None]),
+            "mapping_ms": _describe([r.mapping_ms for r in self.results[1:]
+                                     if r.mapping_ms is not None]),
+            "mapping_worker_ms": _describe(self.mapping_worker_ms[1:]),
             "edges_used_mean": float(np.mean([r.edges_used for r in self.results[1:]]))
             if len(self.results) > 1 else float("nan"),
         }
@@ -119,10 +127,14 @@ def run_sequence(
     progress: bool = True,
     max_frames: int | None = None,
     params: Params | None = None,
+    started: float | None = None,
 ) -> RunResult:
     """Track every associated frame of ``seq``; write the TUM trajectory to ``out`` line by
     line (flushed; renamed into place at the end). Returns the per-frame results.
-    ``params``: learnt parameters for the tracker (``odometry.Odometry``; None: the config's)."""
+    ``params``: learnt parameters for the tracker (``odometry.Odometry``; None: the config's).
+    ``started``: the ``time.perf_counter()`` the start-up is counted from (None: this call;
+    the CLI passes its own start)."""
+    started = time.perf_counter() if started is None else started
     odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq), params=params)
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
     run = RunResult(config=config)
@@ -155,8 +167,9 @@ def run_sequence(
                 now = time.perf_counter()
                 period_ms = (now - t_prev - decode_s) * 1e3
                 run.frame_ms.append(period_ms)
-                if len(run.results) == 2:
-                    run.compile_s = period_ms * 1e-3
+                if len(run.results) == 1:
+                    run.startup_s = now - started
+                    run.warm_up_s = (odo.warm_up_ms or math.nan) * 1e-3
                 t_prev = now
                 bar.update(1)
                 bar.set_postfix(kf=odo.num_keyframes, refresh=False)
@@ -171,7 +184,9 @@ def run_sequence(
         raise
     finally:
         bar.close()
+        odo.close()
         run.num_keyframes = odo.num_keyframes
+        run.mapping_worker_ms = odo.mapping_worker_ms
     if writer is not None:
         writer.close()
     return run

@@ -100,8 +100,8 @@ def test_cli_run_writes_trajectory_and_stats(tmp_path, capsys):
     out, stats_path = tmp_path / "t.txt", tmp_path / "s.json"
     assert main(["run", "--out", str(out), "--stats", str(stats_path), "--no-progress"]) == 0
     stats = json.loads(stats_path.read_text())
-    for key in ("frames", "keyframes", "lost", "compile_s", "ms_per_frame", "ate_rmse_m",
-                "rpe_rmse_m_per_s"):
+    for key in ("frames", "keyframes", "lost", "startup_s", "warm_up_s", "ms_per_frame",
+                "ate_rmse_m", "rpe_rmse_m_per_s"):
         assert key in stats
     assert set(stats["ms_per_frame"]) == {"median", "mean", "p90"}
     assert stats["rpe_rmse_m_per_s"] is None  # the clip is shorter than RPE's 1 s delta

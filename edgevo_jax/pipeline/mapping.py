@@ -1,0 +1,115 @@
+"""The local map beside tracking: each new keyframe goes to ``backend.local_map.LocalMap`` on a
+worker thread, and the tracker takes the refined keyframe pose at a fixed frame lag.
+
+Determinism: when a result is taken never depends on when the worker finishes. The refined
+pose of the keyframe made at frame i is applied when frame i + ``Config.mapping_lag`` is
+concluded, or earlier when a new keyframe is made (its pose is computed from refined poses
+only, so the window sees the same poses as with the map inline); the tracker waits for the
+worker if it is not done by then. The worker takes keyframes one at a time, in order. With
+``mapping_lag = 0`` the window runs inline, in the tracking thread, and the keyframe's own
+pose is already the refined one.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..backend.local_map import LocalMap
+from ..camera import Intrinsics
+from ..config import Config
+from ..frontend.selection import KeyframeEdges
+from ..image.preprocess import Frame
+
+
+def _lower_priority() -> None:
+    """Run the calling thread at the lowest CPU priority where the OS allows it (Linux sets a
+    nice value per thread): tracking comes first, the window takes the cycles left over."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+    except (AttributeError, OSError):  # no per-thread priorities here: run as is
+        pass
+
+
+@dataclass(frozen=True)
+class Mapped:
+    """A keyframe's refinement taken by the tracker: the tracker's handle of the keyframe
+    (``key``), the pose it was handed in with and the refined one (T_world_kf, (4, 4)
+    float64), the window's intrinsics after the step, and the worker's time on it (ms)."""
+
+    key: object
+    pose_in: np.ndarray
+    pose: np.ndarray
+    intrinsics: Intrinsics
+    worker_ms: float
+
+
+class Mapper:
+    """The local map of one tracker, inline (``lag`` 0) or on its own worker thread.
+
+    ``add(key, pose, edges, frame, frame_index)`` hands over a keyframe (T_world_kf; its
+    selected edges, numpy; its Frame) made at ``frame_index``; inline it returns the refined
+    pose at once, beside tracking None. ``due(frame_index)`` returns, in order, the
+    refinements whose frame lag has run out at that frame (waiting for the worker where
+    needed); ``due(None)`` all of them. ``close()`` stops the worker (pending results are
+    dropped); a closed Mapper takes no more keyframes."""
+
+    def __init__(self, config: Config, intrinsics: Intrinsics, shape: tuple[int, int]) -> None:
+        self.lag = config.mapping_lag
+        self.local_map = LocalMap(config, np.asarray(intrinsics), shape)
+        self._pool = (ThreadPoolExecutor(1, thread_name_prefix="edgevo-map",
+                                         initializer=_lower_priority)
+                      if self.lag > 0 else None)
+        self._pending: deque[tuple[int, object, np.ndarray, Future]] = deque()
+        self.worker_ms: list[float] = []  # the window's time per keyframe, in order
+
+    def warm_up(self) -> Future | None:
+        """Compile or load the window's programs (``LocalMap.warm_up``): beside tracking on
+        the worker, ahead of every keyframe (returns its Future), inline at once (None)."""
+        if self._pool is None:
+            self.local_map.warm_up()
+            return None
+        return self._pool.submit(self.local_map.warm_up)
+
+    def add(self, key: object, pose: np.ndarray, edges: KeyframeEdges, frame: Frame,
+            frame_index: int) -> Mapped | None:
+        """Hand over a keyframe (see the class doc)."""
+        pose = np.asarray(pose, np.float64)
+        if self._pool is None:
+            return self._mapped(key, pose, self._step(pose, edges, frame))
+        self._pending.append((frame_index + self.lag, key, pose,
+                              self._pool.submit(self._step, pose, edges, frame)))
+        return None
+
+    def due(self, frame_index: int | None) -> list[Mapped]:
+        """The refinements due at ``frame_index`` (None: all handed over), oldest first."""
+        out = []
+        while self._pending and (frame_index is None or self._pending[0][0] <= frame_index):
+            _, key, pose, future = self._pending.popleft()
+            out.append(self._mapped(key, pose, future.result()))
+        return out
+
+    def close(self) -> None:
+        """Stop the worker after the step it is in; results not taken are dropped."""
+        if self._pool is not None:
+            for *_, future in self._pending:
+                future.cancel()
+            self._pending.clear()
+            self._pool.shutdown(wait=True)
+
+    def _step(self, pose: np.ndarray, edges: KeyframeEdges, frame: Frame
+              ) -> tuple[np.ndarray, Intrinsics, float]:
+        t0 = time.perf_counter()
+        refined, _ = self.local_map.add_keyframe(pose, edges, frame)
+        return refined, self.local_map.camera, (time.perf_counter() - t0) * 1e3
+
+    def _mapped(self, key: object, pose: np.ndarray, step) -> Mapped:
+        refined, intrinsics, ms = step
+        self.worker_ms.append(ms)
+        return Mapped(key, pose, np.asarray(refined, np.float64), intrinsics, ms)
