@@ -98,7 +98,8 @@ def per_frame_record(result: FrameResult) -> dict:
 
 def enable_compilation_cache() -> str | None:
     """Keep compiled XLA programs on disk between runs (EDGEVO_CACHE_DIR, default
-    ~/.cache/edgevo_jax): the first run compiles for seconds, later runs load in about one.
+    ~/.cache/edgevo_jax): the first run compiles for seconds, later runs load instead; every
+    program is kept, the small ones too (loading beats compiling them again).
     An empty EDGEVO_CACHE_DIR turns it off. Returns the folder, or None."""
     import os
 
@@ -107,7 +108,7 @@ def enable_compilation_cache() -> str | None:
     path = os.environ.get("EDGEVO_CACHE_DIR", str(Path.home() / ".cache" / "edgevo_jax"))
     if path:
         jax.config.update("jax_compilation_cache_dir", path)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     return path or None
 
 
