@@ -62,8 +62,9 @@ def test_basin_on_real_frames_k_apart(teddy, k):
     later = np.delete(np.asarray(robust), np.arange(len(robust))[firsts])
     assert later.max() < 2.0, robust
     plain = np.asarray(_motion_errors_cm(teddy, PLAIN, k, starts))
-    if k == 1:  # where the plain basin holds, the checks change nothing
-        np.testing.assert_allclose(robust, plain, atol=0.05)
+    if k == 1:  # where the plain basin holds, the checks change nothing beyond 1 mm (a search
+        # may keep another start's solve of the same minimum, with a higher share)
+        np.testing.assert_allclose(robust, plain, atol=0.1)
     else:
         assert np.mean(plain > 5.0) >= 0.3, plain
 
