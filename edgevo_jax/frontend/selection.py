@@ -387,6 +387,13 @@ def pack_edges(cands: Candidates, idx: np.ndarray, size: int) -> KeyframeEdges:
     return KeyframeEdges(uv=uv, rho=rho, grad=grad, valid=valid, mag=mag)
 
 
+def empty_edges(size: int) -> KeyframeEdges:
+    """``size`` slots and no edge in them (numpy; for compiling a slot count ahead)."""
+    none = Candidates(np.zeros((2, 0), np.float32), np.zeros(0, np.float32),
+                      np.zeros((2, 0), np.float32), np.zeros(0, np.float32))
+    return pack_edges(none, np.zeros(0, np.int64), size)
+
+
 def keyframe_edges(
     frame: Frame, config: Config, *, seed: int, T_prior: np.ndarray | None = None,
     intr: Intrinsics | None = None, reobs_a: float | None = None,

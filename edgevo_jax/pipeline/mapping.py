@@ -40,14 +40,12 @@ def _lower_priority() -> None:
 @dataclass(frozen=True)
 class Mapped:
     """A keyframe's refinement taken by the tracker: the tracker's handle of the keyframe
-    (``key``), the pose it was handed in with and the refined one (T_world_kf, (4, 4)
-    float64), the window's intrinsics after the step, and the worker's time on it (ms)."""
+    (``key``), its refined pose (T_world_kf, (4, 4) float64) and the window's intrinsics
+    after the step."""
 
     key: object
-    pose_in: np.ndarray
     pose: np.ndarray
     intrinsics: Intrinsics
-    worker_ms: float
 
 
 class Mapper:
@@ -66,7 +64,7 @@ class Mapper:
         self._pool = (ThreadPoolExecutor(1, thread_name_prefix="edgevo-map",
                                          initializer=_lower_priority)
                       if self.lag > 0 else None)
-        self._pending: deque[tuple[int, object, np.ndarray, Future]] = deque()
+        self._pending: deque[tuple[int, object, Future]] = deque()  # (due frame, key, step)
         self.worker_ms: list[float] = []  # the window's time per keyframe, in order
 
     def warm_up(self) -> Future | None:
@@ -82,8 +80,8 @@ class Mapper:
         """Hand over a keyframe (see the class doc)."""
         pose = np.asarray(pose, np.float64)
         if self._pool is None:
-            return self._mapped(key, pose, self._step(pose, edges, frame))
-        self._pending.append((frame_index + self.lag, key, pose,
+            return self._mapped(key, self._step(pose, edges, frame))
+        self._pending.append((frame_index + self.lag, key,
                               self._pool.submit(self._step, pose, edges, frame)))
         return None
 
@@ -91,17 +89,15 @@ class Mapper:
         """The refinements due at ``frame_index`` (None: all handed over), oldest first."""
         out = []
         while self._pending and (frame_index is None or self._pending[0][0] <= frame_index):
-            _, key, pose, future = self._pending.popleft()
-            out.append(self._mapped(key, pose, future.result()))
+            _, key, future = self._pending.popleft()
+            out.append(self._mapped(key, future.result()))
         return out
 
     def close(self) -> None:
         """Stop the worker after the step it is in; results not taken are dropped."""
         if self._pool is not None:
-            for *_, future in self._pending:
-                future.cancel()
             self._pending.clear()
-            self._pool.shutdown(wait=True)
+            self._pool.shutdown(wait=True, cancel_futures=True)
 
     def _step(self, pose: np.ndarray, edges: KeyframeEdges, frame: Frame
               ) -> tuple[np.ndarray, Intrinsics, float]:
@@ -109,7 +105,7 @@ class Mapper:
         refined, _ = self.local_map.add_keyframe(pose, edges, frame)
         return refined, self.local_map.camera, (time.perf_counter() - t0) * 1e3
 
-    def _mapped(self, key: object, pose: np.ndarray, step) -> Mapped:
+    def _mapped(self, key: object, step) -> Mapped:
         refined, intrinsics, ms = step
         self.worker_ms.append(ms)
-        return Mapped(key, pose, np.asarray(refined, np.float64), intrinsics, ms)
+        return Mapped(key, np.asarray(refined, np.float64), intrinsics)

@@ -25,34 +25,19 @@ from ..frontend.chunk import track_next_jit
 from ..frontend.depth import depth_points
 from ..frontend.keyframes import keyframe_reason
 from ..frontend.selection import KeyframeEdges, keyframe_edges
-from ..geometry import inverse_np, orthonormalise_np, predict_np, scale_motion_np
+from ..geometry import inverse_np, orthonormalise_np, predict_np
 from ..hostmem import aligned_array, to_host
 from ..image.preprocess import Frame, preprocess
 from ..learn.params import Params, solve_knobs_of
+from . import recovery
 from .mapping import Mapped, Mapper
+from .recovery import inlier_share
 from .results import LOST, OK, WEAK, FrameResult
 
 _track_jit = full_precision(jax.jit(track, static_argnames="config"))
 
 #: frames (not lost) whose highest inlier share is the reference for the share ratios of ``Config``
 SHARE_HISTORY = 5
-#: two alignments agree (converged into one minimum) within this translation (m) and rotation
-#: (degrees): ~2 px at 1.5 m for f ~ 530 px, under the spacing of distinct minima (edges)
-AGREE_M, AGREE_DEG = 0.005, 0.5
-
-
-def inlier_share(res) -> float:
-    """Level-0 inliers per keyframe edge in view of a TrackResult (0 with none in view)."""
-    return float(res.inliers) / max(float(res.visible), 1.0)
-
-
-def _agree(a, b) -> bool:
-    """Whether two TrackResults' poses T_cur_kf agree within ``AGREE_M``, ``AGREE_DEG``."""
-    D = inverse_np(np.asarray(a.T_c_k, np.float64)) @ np.asarray(b.T_c_k, np.float64)
-    cos = np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-    return bool(np.linalg.norm(D[:3, 3]) <= AGREE_M
-                and np.degrees(np.arccos(cos)) <= AGREE_DEG)
-
 
 @dataclass(frozen=True)
 class _Pending:
@@ -260,7 +245,7 @@ class Odometry:
             pending = dataclasses.replace(pending, predicted=self._predict())
         kf = start_kf = self._kf
         solved = res
-        lost = self._lost_reason(frame, res)
+        lost = recovery.lost_reason(frame, res, self.config)
         # lost, or doubted (a share of inliers far under the recent frames': a wrong basin,
         # as after a prediction far off): recovery tries other starts and other keyframes
         reference = self._reference_share()
@@ -288,7 +273,7 @@ class Odometry:
             )
             kf.inlier_counts.append(inliers)
             self._shares = (self._shares + [inlier_share(res)])[-SHARE_HISTORY:]
-            weak = self._weak_reason(frame, res)
+            weak = recovery.weak_reason(frame, res, self.config)
             if kf is not self._kf:  # recovered against an earlier keyframe: it takes over
                 self._kf = kf
             if reason and self._take_mapped(None):  # a new keyframe: from refined poses only
@@ -324,11 +309,9 @@ class Odometry:
         slots = selection.bucket_sizes(self.config) if self.config.selection == "all" \
             else [kf.edges.valid.shape[0]]
         intr, knobs = self._device_constants()
-        none = selection.Candidates(*(np.zeros(s, np.float32) for s in ((2, 0), 0, (2, 0), 0)))
         for size in slots:
-            edges = kf.edges if size == kf.edges.valid.shape[0] else kf.edges._replace(
-                **{k: v for k, v in selection.pack_edges(none, np.zeros(0, int), size)
-                   ._asdict().items() if v is not None})
+            edges = kf.edges if size == kf.edges.valid.shape[0] else selection.empty_edges(
+                size)._replace(depth_pts=kf.edges.depth_pts, depth_normals=kf.edges.depth_normals)
             jax.block_until_ready(track_next_jit(edges, frame.dist, frame.edge_map, A, B, intr,
                                                  knobs, config=self._static))
             self._align(dataclasses.replace(kf, edges=edges), frame, np.eye(4))
@@ -384,106 +367,25 @@ class Odometry:
         """Whether a result's inlier share is under ``ratio`` x the reference share."""
         return reference is not None and inlier_share(res) < ratio * reference
 
-    def _lost_reason(self, frame: Frame, res) -> str | None:
-        """Why a solve result cannot be used (None: it can): no edges in the frame,
-        non-finite pose or covariance, too few inliers, ill-conditioned covariance."""
-        if frame.num_edges == 0:
-            return "no edges in the frame"
-        T = np.asarray(res.T_c_k, np.float64)
-        cov = np.asarray(res.covariance, np.float64)
-        if not (np.all(np.isfinite(T)) and np.all(np.isfinite(cov))):
-            return "non-finite pose"
-        if int(res.inliers) < self.config.min_inliers:
-            return f"too few inliers ({int(res.inliers)})"
-        eig = np.linalg.eigvalsh(0.5 * (cov + cov.T))  # symmetric: cheaper than cond's SVD
-        cond = eig[-1] / eig[0] if eig[0] > 0 else np.inf
-        if not cond <= self.config.max_covariance_condition:
-            return f"covariance ill-conditioned (condition {cond:.2g})"
-        return None
-
-    def _weak_reason(self, frame: Frame, res) -> str | None:
-        """Why a usable result is doubtful: inliers whose mean residual is over half the gate
-        (random matches under the gate average half of it), or a frame without depth (it
-        cannot become a keyframe)."""
-        mean = float(res.mean_residual)
-        if mean > 0.5 * self.config.max_residual[0]:
-            return f"mean residual {mean:.2f} px over half the gate"
-        if not np.any(frame.edge_depth > 0):
-            return "no depth (cannot become a keyframe)"
-        return None
-
     def _recover(self, frame: Frame, pending: _Pending, first, reference: float | None):
-        """Align the frame again from other starts; returns (keyframe, result) better than
-        ``first`` (the solve from the prediction, None when it was lost), or None.
-
-        Against the current keyframe, in order of cost: the keyframe's own pose, the last
-        frame's (no motion), constant velocity scaled by the frames' time steps, doubled
-        and halved; then, where the frame and the keyframe have their gray images, the pose
-        of matched ORB, then SIFT keypoints (``features.relative_pose``: motions far beyond
-        the edge alignment's basin; ORB is ~10x cheaper, SIFT finds poses across wider
-        motions); then the earlier keyframes kept, from the prediction and the same starts.
-        Results are compared by inlier share (``inlier_share``); the search stops once the
-        best is usable and no longer under ``Config.doubt_share_ratio`` x the reference
-        share, or when the ORB start, independent evidence, converges to the first solve's
-        pose (``AGREE_M``, ``AGREE_DEG``): the doubt came from the scene, not the basin."""
-        last = self._poses[-1]
-        starts = [last]
-        if len(self._poses) == 2:
-            step = inverse_np(self._poses[0]) @ last  # the last frame's motion
-            t_prev, t_last = self._times
-            scale = (pending.timestamp - t_last) / max(t_last - t_prev, 1e-6)
-            scales = [min(scale, 8.0)] if abs(scale - 1.0) > 0.25 else []
-            starts += [last @ scale_motion_np(step, s) for s in [*scales, 2.0, 0.5]]
-        best = (self._kf, first) if first is not None else None
-
-        def better(kf, out):
-            nonlocal best
-            if self._lost_reason(frame, out) is None and (
-                    best is None or inlier_share(out) > inlier_share(best[1])):
-                best = (kf, out)
-
-        def settled() -> bool:
-            return best is not None and best[1] is not first and reference is not None \
-                and not self._under(best[1], reference, self.config.doubt_share_ratio)
-
-        for kf in [self._kf, *reversed(self._previous)]:
-            guesses = [kf.pose, *starts] if kf is self._kf else [pending.predicted, *starts]
-            for T_w_c in guesses:
-                better(kf, self._align(kf, frame, inverse_np(T_w_c) @ kf.pose))
-            confirmed = False
-            if kf is self._kf and not settled() and self.config.recovery_features:
-                for kind in ("orb", "sift"):
-                    T_c_k = self._feature_start(kf, frame, kind)
-                    if T_c_k is None:
-                        continue
-                    out = self._align(kf, frame, T_c_k)
-                    better(kf, out)
-                    confirmed = kind == "orb" and first is not None and _agree(out, first) \
-                        and self._lost_reason(frame, out) is None
-                    if confirmed or settled():
-                        break
-            if confirmed or settled():
-                break
-        return best if best is not None and best[1] is not first else None
+        """``recovery.search`` from this tracker's keyframes and last poses; returns
+        (keyframe, result) better than ``first`` (None when it was lost), or None."""
+        doubt = self.config.doubt_share_ratio
+        return recovery.search(
+            frame, [self._kf, *reversed(self._previous)], first=first,
+            predicted=pending.predicted,
+            starts=recovery.motion_starts(self._poses, self._times, pending.timestamp),
+            align=self._align,
+            usable=lambda out: recovery.lost_reason(frame, out, self.config) is None,
+            good_enough=None if reference is None
+            else (lambda out: not self._under(out, reference, doubt)),
+            intrinsics=self.intrinsics, config=self.config)
 
     def _align(self, kf: _Keyframe, frame: Frame, T_c_k: np.ndarray):
         """The edge alignment of ``frame`` to ``kf`` from the start T_cur_kf (host arrays)."""
         return to_host(_track_jit(
             kf.edges, frame.dist, frame.edge_map, np.asarray(T_c_k, np.float32),
             self.intrinsics, config=self._static, knobs=self.knobs))
-
-    def _feature_start(self, kf: _Keyframe, frame: Frame, kind: str) -> np.ndarray | None:
-        """T_cur_kf from keypoints of ``kind`` (``features.detect``) matched between the
-        keyframe and the frame (the keyframe's are detected once), or None without gray
-        images or a pose."""
-        if frame.gray is None or kf.frame is None or kf.frame.gray is None \
-                or kf.frame.depth is None:
-            return None
-        if kind not in kf.keypoints:
-            kf.keypoints[kind] = features.detect(kf.frame.gray, kind=kind)
-        return features.relative_pose(
-            kf.keypoints[kind], kf.frame.depth, features.detect(frame.gray, kind=kind),
-            self.intrinsics, min_depth=self.config.min_depth, max_depth=self.config.max_depth)
 
     # -- internals ------------------------------------------------------------------------
     def _check_frame(self, rgb, depth, timestamp) -> None:

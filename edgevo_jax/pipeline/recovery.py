@@ -1,0 +1,151 @@
+"""Judging a frame's solve (``lost_reason``, ``weak_reason``, ``inlier_share``) and the
+recovery search: a doubted or lost frame aligned again from other starts.
+
+A frame's solve is judged by its inlier share (``inlier_share``). When the share is far under
+the recent frames' (or the solve is unusable), ``search`` aligns the frame again, against the
+current keyframe, in order of cost: from the keyframe's own pose, the last frame's (no motion),
+constant velocity scaled by the frames' time steps, doubled and halved (``motion_starts``);
+then from the pose of matched ORB, then SIFT keypoints (``feature_start``: motions far beyond
+the edge alignment's basin; ORB is ~10x cheaper, SIFT finds poses across wider motions); then
+against the earlier keyframes kept, from the prediction and the same starts. The highest share
+wins. The search stops once the best is good enough, or when the ORB start, independent
+evidence, converges to the first solve's pose (``agree``): the doubt came from the scene, not
+the basin.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from ..camera import Intrinsics
+from ..config import Config
+from ..frontend import features
+from ..geometry import inverse_np, scale_motion_np
+from ..image.preprocess import Frame
+
+#: two alignments agree (converged into one minimum) within this translation (m) and rotation
+#: (degrees): ~2 px at 1.5 m for f ~ 530 px, under the spacing of distinct minima (edges)
+AGREE_M, AGREE_DEG = 0.005, 0.5
+
+
+def inlier_share(res) -> float:
+    """Level-0 inliers per keyframe edge in view of a TrackResult (0 with none in view)."""
+    return float(res.inliers) / max(float(res.visible), 1.0)
+
+
+def lost_reason(frame: Frame, res, config: Config) -> str | None:
+    """Why a solve result cannot be used (None: it can): no edges in the frame,
+    non-finite pose or covariance, too few inliers, ill-conditioned covariance."""
+    if frame.num_edges == 0:
+        return "no edges in the frame"
+    T = np.asarray(res.T_c_k, np.float64)
+    cov = np.asarray(res.covariance, np.float64)
+    if not (np.all(np.isfinite(T)) and np.all(np.isfinite(cov))):
+        return "non-finite pose"
+    if int(res.inliers) < config.min_inliers:
+        return f"too few inliers ({int(res.inliers)})"
+    eig = np.linalg.eigvalsh(0.5 * (cov + cov.T))  # symmetric: cheaper than cond's SVD
+    cond = eig[-1] / eig[0] if eig[0] > 0 else np.inf
+    if not cond <= config.max_covariance_condition:
+        return f"covariance ill-conditioned (condition {cond:.2g})"
+    return None
+
+
+def weak_reason(frame: Frame, res, config: Config) -> str | None:
+    """Why a usable result is doubtful: inliers whose mean residual is over half the gate
+    (random matches under the gate average half of it), or a frame without depth (it
+    cannot become a keyframe)."""
+    mean = float(res.mean_residual)
+    if mean > 0.5 * config.max_residual[0]:
+        return f"mean residual {mean:.2f} px over half the gate"
+    if not np.any(frame.edge_depth > 0):
+        return "no depth (cannot become a keyframe)"
+    return None
+
+
+def agree(a, b) -> bool:
+    """Whether two TrackResults' poses T_cur_kf agree within ``AGREE_M``, ``AGREE_DEG``."""
+    D = inverse_np(np.asarray(a.T_c_k, np.float64)) @ np.asarray(b.T_c_k, np.float64)
+    cos = np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    return bool(np.linalg.norm(D[:3, 3]) <= AGREE_M
+                and np.degrees(np.arccos(cos)) <= AGREE_DEG)
+
+
+def motion_starts(poses: Sequence[np.ndarray], times: Sequence[float], timestamp: float
+                  ) -> list[np.ndarray]:
+    """World poses T_w_c to start from, given the last (at most two) frames' poses and
+    timestamps: the last pose (no motion); with two, the last motion scaled by the time step
+    to ``timestamp`` (a gap in the stream; at most 8x, left out when within 25 % of 1), 2x
+    and 0.5x."""
+    last = poses[-1]
+    if len(poses) < 2:
+        return [last]
+    step = inverse_np(poses[0]) @ last  # the last frame's motion
+    t_prev, t_last = times
+    scale = (timestamp - t_last) / max(t_last - t_prev, 1e-6)
+    scales = [min(scale, 8.0)] if abs(scale - 1.0) > 0.25 else []
+    return [last, *(last @ scale_motion_np(step, s) for s in [*scales, 2.0, 0.5])]
+
+
+def feature_start(kf: Any, frame: Frame, kind: str, intrinsics: Intrinsics, config: Config
+                  ) -> np.ndarray | None:
+    """T_cur_kf from keypoints of ``kind`` (``features.detect``) matched between a keyframe
+    (``.frame`` with its gray image and depth; ``.keypoints``, a dict by kind where its own
+    are kept once detected) and the frame, or None without gray images or a pose."""
+    if frame.gray is None or kf.frame is None or kf.frame.gray is None \
+            or kf.frame.depth is None:
+        return None
+    if kind not in kf.keypoints:
+        kf.keypoints[kind] = features.detect(kf.frame.gray, kind=kind)
+    return features.relative_pose(
+        kf.keypoints[kind], kf.frame.depth, features.detect(frame.gray, kind=kind),
+        intrinsics, min_depth=config.min_depth, max_depth=config.max_depth)
+
+
+def search(
+    frame: Frame, keyframes: Sequence[Any], *, first, predicted: np.ndarray,
+    starts: Sequence[np.ndarray], align: Callable[[Any, Frame, np.ndarray], Any],
+    usable: Callable[[Any], bool], good_enough: Callable[[Any], bool] | None,
+    intrinsics: Intrinsics, config: Config,
+) -> tuple[Any, Any] | None:
+    """The recovery search (module doc). ``keyframes``: the current one first, then the
+    earlier ones to try (each with ``.pose`` T_w_kf); ``first``: the solve from the
+    prediction, None when it was unusable; ``predicted`` and ``starts`` (``motion_starts``)
+    world poses; ``align(kf, frame, T_cur_kf)`` a solve; ``usable(res)`` whether a solve can
+    be used; ``good_enough(res)`` whether it ends the search (None: nothing does, as before
+    any share was seen). Returns (keyframe, solve) better than ``first`` by inlier share, or
+    None."""
+    current = keyframes[0]
+    best = (current, first) if first is not None else None
+
+    def better(kf, out) -> None:
+        nonlocal best
+        if usable(out) and (best is None or inlier_share(out) > inlier_share(best[1])):
+            best = (kf, out)
+
+    def settled() -> bool:
+        return best is not None and best[1] is not first and good_enough is not None \
+            and good_enough(best[1])
+
+    for kf in keyframes:
+        guesses = [kf.pose, *starts] if kf is current else [predicted, *starts]
+        for T_w_c in guesses:
+            better(kf, align(kf, frame, inverse_np(T_w_c) @ kf.pose))
+        confirmed = False
+        if kf is current and not settled() and config.recovery_features:
+            for kind in ("orb", "sift"):
+                T_c_k = feature_start(kf, frame, kind, intrinsics, config)
+                if T_c_k is None:
+                    continue
+                out = align(kf, frame, T_c_k)
+                better(kf, out)
+                confirmed = kind == "orb" and first is not None and agree(out, first) \
+                    and usable(out)
+                if confirmed or settled():
+                    break
+        if confirmed or settled():
+            break
+    return best if best is not None and best[1] is not first else None
