@@ -41,6 +41,17 @@ def shared_clip() -> Callable[[str], Path]:
     return get
 
 
+@pytest.fixture
+def kept_programs(tmp_path: Path):
+    """Programs exported to and loaded from ``tmp_path`` (``edgevo_jax.programs``) for the
+    test, then no longer kept."""
+    from edgevo_jax.programs import keep_programs
+
+    keep_programs(tmp_path)
+    yield tmp_path
+    keep_programs(None)
+
+
 def load_script(name: str) -> ModuleType:
     """scripts/<name>.py as a module (the scripts are not a package)."""
     spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")

@@ -39,11 +39,11 @@ import numpy as np
 from ..camera import Intrinsics, unproject
 from ..config import Config
 from ..derive import MappingConfig, join_window, split_window, window_config
-from ..determinism import full_precision
 from ..frontend.selection import KeyframeEdges
 from ..geometry import Pose, inverse_np, orthonormalise_np
 from ..hostmem import to_host
 from ..image.preprocess import EdgeMap, Frame
+from ..programs import program
 from .activation import activate, reproject
 from .prior import (
     Prior,
@@ -144,15 +144,15 @@ def _activation_step(intr, T_new_host, uv, rho, grad, valid, active, track, fiel
     return track, act.reshape(h, k)
 
 
-_activation_jit = full_precision(jax.jit(_activation_step, static_argnames=(
-    "width", "height", "cell", "max_angle_deg")))
+_activation_jit = program(_activation_step, static_argnames=(
+    "width", "height", "cell", "max_angle_deg"))
 
 def _refine(problem: WindowProblem, numbers, prior: Prior, *, config: MappingConfig):
     """``refine.refine`` with the numbers of ``derive.split_window`` traced."""
     return refine(problem, join_window(config, numbers), prior)
 
 
-_refine_jit = full_precision(jax.jit(_refine, static_argnames="config"))
+_refine_jit = program(_refine, static_argnames="config")
 
 
 def _permute_prior(prior: Prior, order: jnp.ndarray) -> Prior:
@@ -180,9 +180,9 @@ def _marginalize_stale(problem: WindowProblem, numbers, stale: jnp.ndarray, prio
                              prior)
 
 
-_marginalize_first_jit = full_precision(jax.jit(_marginalize_first, static_argnames="config"))
-_marginalize_stale_jit = full_precision(jax.jit(_marginalize_stale, static_argnames="config"))
-_append_to_prior_jit = full_precision(jax.jit(append_keyframe_to_prior))
+_marginalize_first_jit = program(_marginalize_first, static_argnames="config")
+_marginalize_stale_jit = program(_marginalize_stale, static_argnames="config")
+_append_to_prior_jit = program(append_keyframe_to_prior)
 
 
 @dataclass

@@ -20,9 +20,9 @@ import jax.numpy as jnp
 from ..camera import Intrinsics
 from ..config import Config
 from ..derive import SolveKnobs, SolveStructure
-from ..determinism import full_precision
 from ..geometry import Pose, predict
 from ..image.preprocess import EdgeMap
+from ..programs import program
 from .align import TrackResult, track
 from .selection import KeyframeEdges
 
@@ -90,7 +90,7 @@ def batch_of_one(fn):
     one.__name__ = f"{fn.__name__}_jit"
     one.__doc__ = f"``{fn.__name__}`` jitted, run as a batch of one (``batch_of_one``).\n\n" \
         + (fn.__doc__ or "")
-    return full_precision(jax.jit(one, static_argnames="config"))
+    return program(one, static_argnames="config")
 
 
 track_next_jit = batch_of_one(track_next)

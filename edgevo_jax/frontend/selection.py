@@ -39,6 +39,7 @@ from ..determinism import full_precision
 from ..geometry import Pose
 from ..hostmem import to_host
 from ..image.preprocess import Frame
+from ..programs import program
 from .residuals import point_jacobian, warp
 
 
@@ -263,8 +264,7 @@ def partition_mean(values: np.ndarray, starts: np.ndarray, counts: np.ndarray) -
     return np.repeat(np.add.reduceat(values, starts) / counts, counts).astype(values.dtype)
 
 
-@full_precision
-@partial(jax.jit, static_argnames=("width", "height", "mode", "num_edges", "max_per_cell",
+@partial(program, static_argnames=("width", "height", "mode", "num_edges", "max_per_cell",
                                    "lam", "a", "samples"))
 def _select_device(
     points: jnp.ndarray, ranges: jnp.ndarray, T_prior: jnp.ndarray, intr: jnp.ndarray,

@@ -18,7 +18,6 @@ import numpy as np
 from ..camera import Intrinsics
 from ..config import Config
 from ..derive import solve_knobs, solve_structure
-from ..determinism import full_precision
 from ..frontend import features, selection
 from ..frontend.align import TrackResult, track
 from ..frontend.chunk import track_next_jit
@@ -29,12 +28,13 @@ from ..geometry import inverse_np, orthonormalise_np, predict_np
 from ..hostmem import aligned_array, to_host
 from ..image.preprocess import Frame, preprocess
 from ..learn.params import Params, solve_knobs_of
+from ..programs import program
 from . import recovery
 from .mapping import Mapped, Mapper
 from .recovery import inlier_share
 from .results import LOST, OK, WEAK, FrameResult
 
-_track_jit = full_precision(jax.jit(track, static_argnames="config"))
+_track_jit = program(track, static_argnames="config")
 
 #: frames (not lost) whose highest inlier share is the reference for the share ratios of ``Config``
 SHARE_HISTORY = 5

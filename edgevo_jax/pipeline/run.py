@@ -34,6 +34,7 @@ from ..image.preprocess import Frame, start_preprocess
 from ..io import TrajectoryWriter, matrices_to_poses7, poses7_to_matrices
 from ..learn.params import Params
 from ..metrics import ate, rpe
+from ..programs import keep_programs
 from .odometry import Odometry
 from .results import LOST, OK, WEAK, FrameResult, FrameResults
 
@@ -109,6 +110,7 @@ def enable_compilation_cache() -> str | None:
     if path:
         jax.config.update("jax_compilation_cache_dir", path)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    keep_programs(path or None)
     return path or None
 
 

@@ -64,13 +64,17 @@ def test_a_slow_worker_changes_nothing(teddy_frames, monkeypatch):
     assert gap.max() > 0 and gap.max() < 0.01
 
 
-def test_nothing_compiles_after_the_first_frame(teddy_frames, caplog):
+@pytest.mark.parametrize("kept", [False, True], ids=["jit", "kept"])
+def test_nothing_compiles_after_the_first_frame(teddy_frames, caplog, kept, tmp_path,
+                                                request):
     """With shapes no other test uses (fresh programs), the first frame compiles (the
     warm-up) and the later ones, keyframes, window refinement and marginalisation included,
     compile nothing."""
     seq, frames = teddy_frames
-    config = SMALL.replace(num_edges=320, active_per_keyframe=96, mapping_lag=1)
+    config = SMALL.replace(num_edges=320 + 8 * kept, active_per_keyframe=96, mapping_lag=1)
     done = [preprocess(*f, config) for f in frames]
+    if kept:  # programs exported and stored (edgevo_jax.programs), as in `edgevo run`
+        request.getfixturevalue("kept_programs")
     with Odometry(config, seq.intrinsics) as odo:
         with jax.log_compiles(True), caplog.at_level(logging.WARNING):
             odo.track_frame(done[0], seq.timestamps[0])
@@ -81,6 +85,7 @@ def test_nothing_compiles_after_the_first_frame(teddy_frames, caplog):
         later = [r.getMessage()[:80] for r in caplog.records if "Compiling" in r.getMessage()]
         assert odo.num_keyframes > config.window_size
     assert first and not later
+    assert any(tmp_path.glob("exported/*.bin")) == kept
 
 
 def test_mapping_lag_must_not_be_negative():
