@@ -13,6 +13,7 @@ from pathlib import Path
 
 STARTED = time.perf_counter()  # the command's start (the start-up it reports counts from it)
 
+from .datasets.source import DEPTH_TOPIC, INFO_TOPIC, RGB_TOPIC  # noqa: E402
 from .io import json_safe  # noqa: E402
 
 BUNDLED_CLIP = Path(__file__).resolve().parent / "data" / "rgbd_dataset_freiburg1_xyz_first10"
@@ -23,9 +24,12 @@ def _parser() -> argparse.ArgumentParser:
         prog="edgevo", description="Edge-based RGB-D visual odometry (EdgeVO) in JAX."
     )
     sub = p.add_subparsers(dest="command", required=True)
-    run = sub.add_parser("run", help="track a TUM RGB-D sequence and write its trajectory")
+    run = sub.add_parser("run", help="track an RGB-D sequence and write its trajectory")
     run.add_argument("sequence", nargs="?", type=Path, default=None,
-                     help="TUM sequence folder (default: the bundled fr1_xyz clip)")
+                     help="a TUM or ETH3D folder (its calibration.txt gives the camera), a "
+                          "ROS1 or ROS2 bag (.bag, a folder with metadata.yaml, .db3, .mcap), "
+                          "or realsense[:SERIAL] for a live camera (default: the bundled "
+                          "fr1_xyz clip)")
     run.add_argument("--out", type=Path, default=None,
                      help="trajectory file (TUM format; default: <sequence>.traj.txt here)")
     run.add_argument("--stats", type=Path, default=None, help="write run statistics as JSON")
@@ -41,6 +45,18 @@ def _parser() -> argparse.ArgumentParser:
                      metavar=("FX", "FY", "CX", "CY"),
                      help="override the camera (then no undistortion is applied)")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
+    run.add_argument("--rgb-topic", default=RGB_TOPIC, help=f"bags: rgb images ({RGB_TOPIC})")
+    run.add_argument("--depth-topic", default=DEPTH_TOPIC,
+                     help=f"bags: depth images, 32FC1 m or 16UC1 mm ({DEPTH_TOPIC})")
+    run.add_argument("--info-topic", default=INFO_TOPIC,
+                     help=f"bags: the camera's CameraInfo ({INFO_TOPIC})")
+    run.add_argument("--groundtruth", type=Path, default=None,
+                     help="bags and cameras: a TUM trajectory file to score against")
+    run.add_argument("--rerun", type=Path, default=None, metavar="FILE.rrd",
+                     help="record the run for the rerun viewer (pip install "
+                          "'edgevo_jax[rerun]'); open it with `rerun FILE.rrd`")
+    run.add_argument("--rerun-viewer", action="store_true",
+                     help="show the run live in a rerun viewer (needs a display)")
     run.add_argument("--params", type=Path, default=None, metavar="JSON",
                      help="learnt parameters (Huber radii, eta, edge weighting, reobs_a): a "
                           "JSON of Params fields, or scripts/learn_weights.py's log")
@@ -131,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "batch":
             return _batch(args)
         return _eval(args)
-    except (FileNotFoundError, ValueError) as err:
+    except (FileNotFoundError, ValueError, ImportError) as err:
         print(f"edgevo: error: {err}", file=sys.stderr)
         for note in getattr(err, "__notes__", []):  # where a run stopped, what it kept
             print(f"edgevo: {note}", file=sys.stderr)
@@ -141,30 +157,44 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args: argparse.Namespace) -> int:
     from .camera import Intrinsics
     from .config import Config
-    from .datasets.tum import load_sequence
+    from .datasets.source import open_source
     from .pipeline.run import enable_compilation_cache, run_sequence, summarise
 
     config = Config().with_overrides(args.overrides)
     params = _read_params(args.params, config) if args.params is not None else None
-    enable_compilation_cache()
     path = args.sequence if args.sequence is not None else BUNDLED_CLIP
-    kwargs = {"depth_factor": args.depth_factor, "frame_step": args.frame_step}
-    if args.intrinsics is not None:
-        kwargs["intrinsics"] = Intrinsics(*args.intrinsics)
-    seq = load_sequence(path, **kwargs)
+    seq = open_source(
+        path, intrinsics=None if args.intrinsics is None else Intrinsics(*args.intrinsics),
+        depth_factor=args.depth_factor, frame_step=args.frame_step, rgb_topic=args.rgb_topic,
+        depth_topic=args.depth_topic, info_topic=args.info_topic, groundtruth=args.groundtruth,
+        max_frames=args.max_frames)
+    recording = None
+    if args.rerun is not None or args.rerun_viewer:
+        from .viz.recording import RerunRecording
+
+        recording = RerunRecording(seq, path=args.rerun, spawn=args.rerun_viewer)
+    enable_compilation_cache()
     out = args.out if args.out is not None else Path(f"{seq.name}.traj.txt")
     try:
         run = run_sequence(seq, config, out=out, progress=not args.no_progress,
-                           max_frames=args.max_frames, params=params, started=STARTED)
+                           max_frames=args.max_frames, params=params, started=STARTED,
+                           on_frame=recording)
     except KeyboardInterrupt as err:
         notes = getattr(err, "__notes__", [])
         print("edgevo: interrupted" + (f"; {notes[0]}" if notes else ""), file=sys.stderr)
         return 130
+    finally:
+        if recording is not None:
+            recording.close()
+        if hasattr(seq, "close"):  # a bag's reader, a live camera
+            seq.close()
     stats = summarise(run, seq)
     if args.stats is not None:
         args.stats.parent.mkdir(parents=True, exist_ok=True)
         args.stats.write_text(json.dumps(json_safe(stats), indent=2) + "\n")
     print(_summary_text(stats, out))
+    if args.rerun is not None:
+        print(f"rerun recording: {args.rerun} (open with `rerun {args.rerun}`)")
     return 0
 
 
@@ -243,7 +273,7 @@ def _summary_text(stats: dict, out: Path) -> str:
         lines.append("RPE RMSE      " + ("n/a (sequence shorter than 1 s)" if rpe is None
                                          or math.isnan(rpe) else f"{rpe:.4f} m/s"))
     else:
-        lines.append("ATE           n/a (" + stats.get("ground_truth_note", "no groundtruth.txt")
+        lines.append("ATE           n/a (" + stats.get("ground_truth_note", "no ground truth")
                      + ")")
     lines.append(f"trajectory    {out}")
     return "\n".join(lines)

@@ -362,7 +362,7 @@ def test_missing_ground_truth_runs_without_ate_and_says_so(tmp_path, capsys):
     assert cli.main(["run", str(clip), "--out", str(out), "--max-frames", "3",
                      "--no-progress"]) == 0
     text = capsys.readouterr().out
-    assert "ATE           n/a (no groundtruth.txt)" in text, text
+    assert "ATE           n/a (no ground truth)" in text, text
     assert "ATE RMSE" not in text
     assert len(out.read_text().splitlines()) == 3
 
@@ -418,7 +418,7 @@ depth), plus a full decode of the first frame. A PNG damaged *inside* (header an
 is only found when its frame is decoded: the run stops there and the poses done so far stay in
 `<out>.part` (as after Ctrl-C). An all-zero depth frame is no error: it warns, naming the file,
 and the run goes on. A missing `groundtruth.txt` is no error either: the run goes on and the
-summary says `ATE n/a (no groundtruth.txt)`.
+summary says `ATE n/a (no ground truth)`.
 """
 
 

@@ -1,8 +1,10 @@
-"""TUM RGB-D benchmark sequences (host side: numpy + OpenCV).
+"""TUM RGB-D benchmark sequences and ETH3D SLAM-style folders (host side: numpy + OpenCV).
 
 Layout: ``rgb.txt``, ``depth.txt`` (``timestamp filename`` lines), ``rgb/``, ``depth/`` and an
 optional ``groundtruth.txt`` (``timestamp tx ty tz qx qy qz qw``, T_world_cam). Depth PNGs are
 16-bit with ``value / depth_factor`` metres (5000 in the benchmark) and 0 for no measurement.
+ETH3D SLAM folders add ``calibration.txt`` (one line ``fx fy cx cy``, undistorted images);
+any folder holding one takes its camera from it.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ __all__ = [
     "empty_depth_note",
     "groundtruth_pose_at",
     "load_sequence",
+    "read_calibration",
     "read_file_list",
 ]
 
@@ -112,6 +115,29 @@ def read_file_list(path: str | os.PathLike[str]) -> tuple[np.ndarray, list[str]]
             rest.append(" ".join(fields[1:]))
             linenos.append(lineno)
     return np.asarray(stamps, np.float64), rest
+
+
+CALIBRATION = "calibration.txt"
+
+
+def read_calibration(path: str | os.PathLike[str]) -> Intrinsics:
+    """Intrinsics from an ETH3D ``calibration.txt``: ``fx fy cx cy`` on its first line that is
+    not blank or a '#' comment. ValueError naming the file for anything else."""
+    p = Path(path)
+    lines = [ln.split() for ln in p.read_text(encoding="utf-8", errors="replace").splitlines()
+             if ln.strip() and not ln.lstrip().startswith("#")]
+    if not lines or len(lines[0]) != 4:
+        raise ValueError(f"{p}: expected one line 'fx fy cx cy', got "
+                         f"{' '.join(lines[0]) if lines else 'nothing'!r}")
+    try:
+        values = [float(v) for v in lines[0]]
+    except ValueError:
+        raise ValueError(f"{p}: 'fx fy cx cy' must be numbers, got {' '.join(lines[0])!r}") \
+            from None
+    try:
+        return Intrinsics(*values).validate()
+    except ValueError as err:
+        raise ValueError(f"{p}: {err}") from None
 
 
 def camera_from_name(name: str) -> tuple[Intrinsics, Distortion | None]:
@@ -350,8 +376,10 @@ def load_sequence(
     recorded; where the lists have gaps, pairs that no longer associate are dropped, so the
     motion between tracked frames can span more than k frames). The name gets ``_everyk``.
 
-    Intrinsics come from the folder name (``camera_from_name``) unless given. ``distortion``
-    defaults to the folder name's camera, or to None when ``intrinsics`` are given. Ground
+    Intrinsics come from ``intrinsics`` when given, else from the folder's ``calibration.txt``
+    (ETH3D, ``read_calibration``), else from the folder name (``camera_from_name``).
+    ``distortion`` defaults to the folder name's camera, or to None when the intrinsics come
+    from ``intrinsics`` or calibration.txt. Ground
     truth is read when ``groundtruth.txt`` exists (None otherwise: runs go on without ATE).
 
     Everything that can be checked without tracking is checked here, so that a bad input stops
@@ -375,7 +403,10 @@ def load_sequence(
     if not (math.isfinite(depth_factor) and depth_factor > 0):
         raise ValueError(f"depth_factor must be positive and finite, got {depth_factor}")
     name = Path(os.path.abspath(root)).name  # normalise '.'/'..' but keep symlink names
-    if intrinsics is None:
+    if intrinsics is None and (root / CALIBRATION).is_file():
+        intr = read_calibration(root / CALIBRATION)
+        dist = None if distortion is FROM_NAME else distortion
+    elif intrinsics is None:
         intr, name_dist = camera_from_name(name)
         dist = name_dist if distortion is FROM_NAME else distortion
     else:
@@ -429,7 +460,7 @@ def load_sequence(
         width=int(first.shape[1]),
         height=int(first.shape[0]),
     )
-    if intrinsics is not None:  # the Freiburg table holds for the cameras' 640x480 frames
+    if intrinsics is not None or (root / CALIBRATION).is_file():  # the Freiburg table: 640x480
         intr.validate(width=seq.width, height=seq.height)
     with warnings.catch_warnings():  # an empty first depth warns when the run decodes it
         warnings.simplefilter("ignore", EmptyDepthWarning)

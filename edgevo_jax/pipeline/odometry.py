@@ -186,6 +186,15 @@ class Odometry:
         return self._kf is not None
 
     @property
+    def keyframe(self) -> tuple[float, np.ndarray, np.ndarray] | None:
+        """The current keyframe: (timestamp, pose T_world_kf (4, 4), its selected edges'
+        pixels (N, 2) float32 (u, v)); None before the first keyframe."""
+        if self._kf is None:
+            return None
+        edges = to_host(self._kf.edges)
+        return self._kf.timestamp, self._kf.pose.copy(), np.asarray(edges.uv).T[edges.valid]
+
+    @property
     def structure(self) -> object:
         """The static part of the solve (a jit static argument; see ``solve_inputs``)."""
         return self._static

@@ -17,6 +17,7 @@ import dataclasses
 import math
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -25,7 +26,8 @@ import numpy as np
 from tqdm import tqdm
 
 from ..config import Config
-from ..datasets.tum import TumSequence, groundtruth_pose_at
+from ..datasets.source import Source
+from ..datasets.tum import groundtruth_pose_at
 from ..frontend.align import TrackResult
 from ..frontend.chunk import track_chunk_jit
 from ..hostmem import aligned_stack, to_host
@@ -114,16 +116,16 @@ def enable_compilation_cache() -> str | None:
     return path or None
 
 
-def initial_pose(seq: TumSequence) -> np.ndarray:
+def initial_pose(seq: Source) -> np.ndarray:
     """T_world_cam of the first frame: the nearest ground-truth pose, else identity."""
-    if len(seq) == 0:
+    if len(seq) == 0 or seq.groundtruth is None or len(seq.timestamps) == 0:
         return np.eye(4)
     pose7 = groundtruth_pose_at(seq, float(seq.timestamps[0]))
     return np.eye(4) if pose7 is None else poses7_to_matrices(np.asarray(pose7)[None])[0]
 
 
 def run_sequence(
-    seq: TumSequence,
+    seq: Source,
     config: Config,
     *,
     out: str | Path | None = None,
@@ -131,19 +133,23 @@ def run_sequence(
     max_frames: int | None = None,
     params: Params | None = None,
     started: float | None = None,
+    on_frame: Callable[[FrameResult, np.ndarray, Frame, Odometry], None] | None = None,
 ) -> RunResult:
     """Track every associated frame of ``seq``; write the TUM trajectory to ``out`` line by
     line (flushed; renamed into place at the end). Returns the per-frame results.
     ``params``: learnt parameters for the tracker (``odometry.Odometry``; None: the config's).
     ``started``: the ``time.perf_counter()`` the start-up is counted from (None: this call;
-    the CLI passes its own start)."""
+    the CLI passes its own start). ``on_frame(result, rgb, frame, odometry)`` is called
+    after each frame is concluded, with its rectified rgb and pre-processed ``Frame`` and
+    the tracker in its state after the frame (e.g. ``viz.recording.RerunRecording``)."""
     started = time.perf_counter() if started is None else started
     odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq), params=params)
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
     run = RunResult(config=config)
     writer = TrajectoryWriter(out) if out is not None else None
     bar = tqdm(total=n, desc=seq.name, unit="frame", disable=not progress, leave=False)
-    ready = None  # (frame, timestamp, preprocess ms) decoded and pre-processed, not submitted
+    ready = None  # (frame, timestamp, preprocess ms, rgb) decoded and pre-processed, not submitted
+    shown = None  # the rgb and Frame of the frame in flight (for on_frame)
     t_prev = time.perf_counter()
     try:
         for i in range(n + 1):
@@ -155,16 +161,17 @@ def run_sequence(
                 run.decode_ms.append(decode_s * 1e3)
             # submit after decoding, so that the solve overlaps preprocessing only
             pending = odo.submit(*ready[:2], preprocess_ms=ready[2]) if ready else None
-            job, pre_s = None, 0.0
+            shown, job, pre_s = (ready[3], ready[0]) if ready else None, None, 0.0
             if i < n:
                 t1 = time.perf_counter()
-                job = start_preprocess(*seq.rectify_frame(rgb, raw_depth), config)
+                rgb, depth = seq.rectify_frame(rgb, raw_depth)
+                job = start_preprocess(rgb, depth, config)
                 pre_s = time.perf_counter() - t1
             result = odo.complete(pending) if pending is not None else None  # meanwhile: DT
             if job is not None:
                 t2 = time.perf_counter()
                 ready = (job.finish(), float(seq.timestamps[i]),
-                         (pre_s + time.perf_counter() - t2) * 1e3)
+                         (pre_s + time.perf_counter() - t2) * 1e3, rgb)
             if result is not None:
                 _record(run, result, writer)
                 now = time.perf_counter()
@@ -173,7 +180,9 @@ def run_sequence(
                 if len(run.results) == 1:
                     run.startup_s = now - started
                     run.warm_up_s = (odo.warm_up_ms or math.nan) * 1e-3
-                t_prev = now
+                if on_frame is not None:  # not counted in the frame times
+                    on_frame(result, shown[0], shown[1], odo)
+                t_prev = time.perf_counter() if on_frame is not None else now
                 bar.update(1)
                 bar.set_postfix(kf=odo.num_keyframes, refresh=False)
     except BaseException as exc:
@@ -256,7 +265,7 @@ def _record(run: RunResult, result: FrameResult, writer: TrajectoryWriter | None
         writer.write(result.timestamp, matrices_to_poses7(result.pose[None])[0])
 
 
-def summarise(run: FrameResults, seq: TumSequence) -> dict:
+def summarise(run: FrameResults, seq: Source) -> dict:
     """A run's statistics (the CLI's ``--stats`` JSON; one row of ``edgevo batch``): counts
     of frames, keyframes, lost and weak frames and their reasons, the run's own fields
     (``RunResult``: timings; ``BatchRun``: its configuration's index), the configuration,

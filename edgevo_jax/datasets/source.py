@@ -1,0 +1,100 @@
+"""What the pipeline reads: a ``Source`` of timestamped rgb and metric depth frames with the
+camera's intrinsics and, optionally, ground truth; and ``open_source``, which picks the
+reader for a path (a TUM or ETH3D folder, a ROS1 or ROS2 bag, a live RealSense)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from ..camera import Intrinsics
+
+#: The TUM bags' topics (``load_bag``'s defaults).
+RGB_TOPIC = "/camera/rgb/image_color"
+DEPTH_TOPIC = "/camera/depth/image"
+INFO_TOPIC = "/camera/rgb/camera_info"
+#: ``open_source`` opens the first RealSense camera for this path (``realsense:SERIAL``: that one).
+REALSENSE = "realsense"
+
+
+@runtime_checkable
+class Source(Protocol):
+    """A sequence of RGB-D frames, read in order by ``pipeline.run.run_sequence``.
+
+    ``decode_frame(i)`` returns frame i as stored (rgb uint8 (H, W, 3) in RGB order, depth
+    in the source's own units); ``rectify_frame`` turns that into what the tracker takes:
+    rgb undistorted onto the pinhole ``intrinsics`` and depth float32 metres (H, W), 0 where
+    nothing was measured. ``timestamps[i]`` (seconds, increasing) is known once frame i is
+    decoded; ``groundtruth`` is (timestamps (M,), poses7 (M, 7) T_world_cam) or None.
+    A live source is read in order only (i = 0, 1, 2, ...)."""
+
+    name: str
+    intrinsics: Intrinsics
+    groundtruth: tuple[np.ndarray, np.ndarray] | None
+    width: int
+    height: int
+
+    @property
+    def timestamps(self) -> np.ndarray | list[float]:
+        """(N,) seconds of the frames (of those read so far, for a live source)."""
+        ...
+
+    def __len__(self) -> int: ...
+
+    def decode_frame(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """Frame i as stored: rgb uint8 (H, W, 3) in RGB order, depth in the source's units."""
+        ...
+
+    def rectify_frame(self, rgb: np.ndarray, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A decoded frame as the tracker takes it: undistorted rgb, float32 metres depth."""
+        ...
+
+
+def is_bag(path: str | os.PathLike[str]) -> bool:
+    """A ROS1 bag file (``.bag``), a ROS2 bag folder (``metadata.yaml``) or a ROS2 storage
+    file (``.db3``, ``.mcap``)."""
+    p = Path(path)
+    if p.is_dir():
+        return (p / "metadata.yaml").is_file()
+    return p.suffix in (".bag", ".db3", ".mcap")
+
+
+def open_source(
+    path: str | os.PathLike[str],
+    *,
+    intrinsics: Intrinsics | None = None,
+    depth_factor: float = 5000.0,
+    frame_step: int = 1,
+    rgb_topic: str = RGB_TOPIC,
+    depth_topic: str = DEPTH_TOPIC,
+    info_topic: str = INFO_TOPIC,
+    groundtruth: str | os.PathLike[str] | None = None,
+    max_frames: int | None = None,
+) -> Source:
+    """The reader for ``path``: a ROS bag (``is_bag``: ``bag.load_bag`` with the topics), the
+    string ``realsense`` or ``realsense:SERIAL`` (``realsense.open_realsense``; ``max_frames``
+    frames, None: until stopped), else a TUM or ETH3D folder (``tum.load_sequence``: the
+    camera from ``intrinsics``, else the folder's calibration.txt, else its name).
+    ``groundtruth``: a TUM trajectory file for bags and cameras (folders read their own)."""
+    text = os.fspath(path)
+    if text == REALSENSE or text.startswith(REALSENSE + ":"):
+        from .realsense import open_realsense
+
+        serial = text.partition(":")[2] or None
+        return open_realsense(serial=serial, max_frames=max_frames, intrinsics=intrinsics,
+                              groundtruth=groundtruth)
+    if is_bag(path):
+        from .bag import load_bag
+
+        return load_bag(path, rgb_topic=rgb_topic, depth_topic=depth_topic,
+                        info_topic=info_topic, intrinsics=intrinsics, groundtruth=groundtruth,
+                        frame_step=frame_step)
+    from .tum import load_sequence
+
+    if groundtruth is not None:
+        raise ValueError(f"{path}: a folder reads its own groundtruth.txt (no --groundtruth)")
+    kwargs = {} if intrinsics is None else {"intrinsics": intrinsics}
+    return load_sequence(path, depth_factor=depth_factor, frame_step=frame_step, **kwargs)
