@@ -25,7 +25,7 @@ from ..camera import Intrinsics
 from ..io import read_trajectory
 from ..metrics import associate_timestamps
 from .source import DEPTH_TOPIC, INFO_TOPIC, RGB_TOPIC
-from .tum import Distortion, _cached_maps
+from .tum import Distortion, undistort
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
@@ -127,13 +127,7 @@ class BagSequence:
             depth = raw.astype(np.float32) * np.float32(_DEPTH_ENCODINGS["16UC1"][1])
         else:
             depth = np.where(np.isfinite(raw) & (raw > 0), raw, np.float32(0)).astype(np.float32)
-        if self.distortion is not None:
-            maps = _cached_maps(self.intrinsics, tuple(self.distortion), self.width, self.height)
-            rgb = cv2.remap(rgb, maps[0], maps[1], cv2.INTER_LINEAR,
-                            borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-            depth = cv2.remap(depth, maps[0], maps[1], cv2.INTER_NEAREST,
-                              borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        return rgb, depth
+        return undistort(rgb, depth, self.intrinsics, self.distortion)
 
 
 def _stamp(msg: Any) -> float:
@@ -179,8 +173,8 @@ def _pixels(msg: Any, dtype: type, channels: int, topic: str) -> np.ndarray:
 
 
 def _camera(msg: Any) -> tuple[Intrinsics, Distortion | None]:
-    K = np.asarray(getattr(msg, "k", None) if hasattr(msg, "k") else msg.K, np.float64)
-    D = np.asarray(getattr(msg, "d", None) if hasattr(msg, "d") else msg.D, np.float64)
+    K = np.asarray(msg.k if hasattr(msg, "k") else msg.K, np.float64)  # ROS2 / ROS1 names
+    D = np.asarray(msg.d if hasattr(msg, "d") else msg.D, np.float64)
     intr = Intrinsics(float(K[0]), float(K[4]), float(K[2]), float(K[5]))
     dist = tuple(float(v) for v in D) if D.size and np.any(D != 0) else None
     return intr, dist

@@ -167,6 +167,20 @@ def _cached_maps(
     return map1, map2
 
 
+def undistort(rgb: np.ndarray, depth: np.ndarray, intr: Intrinsics,
+              distortion: Distortion | None) -> tuple[np.ndarray, np.ndarray]:
+    """rgb (bilinear) and depth (nearest neighbour: no depth values blended) remapped onto
+    the pinhole ``intr`` from a camera with OpenCV ``distortion`` (None: as they are)."""
+    if distortion is None:
+        return rgb, depth
+    h, w = depth.shape
+    map1, map2 = _cached_maps(intr, tuple(distortion), w, h)
+    return (cv2.remap(rgb, map1, map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                      borderValue=0),
+            cv2.remap(depth, map1, map2, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                      borderValue=0))
+
+
 def _read_image(path: Path, flags: int, what: str) -> np.ndarray:
     if not path.is_file():
         raise FileNotFoundError(f"{what} image not found: {path}")
@@ -281,11 +295,6 @@ class TumSequence:
     def __len__(self) -> int:
         return len(self.rgb_files)
 
-    def _maps(self) -> tuple[np.ndarray, np.ndarray] | None:
-        if self.distortion is None:
-            return None
-        return _cached_maps(self.intrinsics, tuple(self.distortion), self.width, self.height)
-
     def load_frame(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """Frame i: rgb uint8 (H, W, 3) in RGB order and depth float32 metres (H, W), 0 = none.
 
@@ -328,12 +337,7 @@ class TumSequence:
 
     def rectify_frame(self, rgb: np.ndarray, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Undistort a decoded frame (when ``distortion`` is set) and scale depth to metres."""
-        maps = self._maps()
-        if maps is not None:
-            rgb = cv2.remap(rgb, maps[0], maps[1], cv2.INTER_LINEAR,
-                            borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-            raw = cv2.remap(raw, maps[0], maps[1], cv2.INTER_NEAREST,
-                            borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        rgb, raw = undistort(rgb, raw, self.intrinsics, self.distortion)
         depth = raw.astype(np.float32) / np.float32(self.depth_factor)
         return rgb, depth
 
