@@ -290,6 +290,10 @@ class Odometry:
         else:  # predicted (constant velocity), flagged
             reason = "lost"
             pose = self._predict() if self._take_mapped(None) else pending.predicted
+            # lost frames in a row extrapolate again and again: keep R a rotation, stay finite
+            pose = orthonormalise_np(pose) if np.all(np.isfinite(pose)) else pose
+            if not np.all(np.isfinite(pose)):
+                pose = self._poses[-1]
         used = kf.num_edges
         made_kf = self._make_keyframe(frame, timestamp, pose) if reason else None
         if made_kf is not None:
