@@ -52,10 +52,13 @@ from edgevo_jax.io import json_safe, poses7_to_matrices
 from edgevo_jax.learn import level_system, newton_decrement, pose_loss, track_differentiable
 from edgevo_jax.learn.params import Params, flatten, unflatten
 
-#: parameters that enter level 0 (flattened Params order): the others are the coarse
-#: levels' Huber radii, reobs_a (selection only) and the level feature's weight (0 at level 0)
-LEVEL0 = {0: "log_huber0", 3: "eta", 4: "log_temperature", 6: "w_mag", 7: "w_depth",
-          8: "w_residual", 10: "b"}
+#: parameters checked, all entering level 0 (flattened Params order: log_huber (3), eta,
+#: log_temperature, reobs_a, weight_w1 (8 x 6, row by row), weight_b1 (8), weight_w2 (8),
+#: weight_b2); not checked: the coarse levels' Huber radii, reobs_a (selection only), the
+#: first layer's level-feature column (0 at level 0) and the other hidden units
+LEVEL0 = {0: "log_huber0", 3: "eta", 4: "log_temperature", 6: "w1_mag", 7: "w1_depth",
+          8: "w1_discontinuity", 9: "w1_residual", 54: "b1_0", 62: "w2_0", 63: "w2_1",
+          70: "b2"}
 VARIANTS = (("bilinear", 0), ("bicubic", 0), ("bilinear", None), ("bicubic", None))
 #: |central difference| at or below this: the parameter does not move the loss (rounding)
 ZERO = 1e-10
@@ -78,8 +81,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 def nondefault_params(config: Config) -> Params:
     """Non-default Params in which every level-0 parameter moves the pose (float64)."""
     return Params.default(config, jnp.float64)._replace(
-        weight_w=jnp.array([0.1, -0.2, 0.3, 0.05]), weight_b=jnp.asarray(0.1),
-        log_huber=jnp.log(jnp.array([1.2, 0.9, 1.1])))
+        weight_w2=jnp.array([0.1, -0.2, 0.3, 0.05, -0.1, 0.2, 0.1, -0.3]),
+        weight_b2=jnp.asarray(0.1), log_huber=jnp.log(jnp.array([1.2, 0.9, 1.1])))
 
 
 def _pose(v, kf, dist, em, intr, config, interpolation, refine, adjoint):

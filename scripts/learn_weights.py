@@ -2,54 +2,56 @@
 
 Usage::
 
-    python scripts/learn_weights.py [SEQ_DIR] [--train 0:100] [--test 100:200] [--gaps 1,2,3]
+    python scripts/learn_weights.py [SEQ_DIR ...] [--test-sequences SEQ_DIR ...]
+                                    [--train 0:100] [--test 100:200] [--gaps 1,2,3]
                                     [--loss pairs|window] [--window 8] [--num-edges 256]
-                                    [--steps 60] [--batch 32] [--lr 3e-3] [--seed 0]
-                                    [--rot-weight 0.1] [--no-ate] [--control-runs 0]
+                                    [--gn-steps 6,6,6] [--steps 200] [--batch 32] [--lr 1e-2]
+                                    [--seed 0] [--rot-weight 0.1] [--no-ate] [--control-runs 0]
                                     [--out-json docs/learning/learn_weights.json]
                                     [--out-png docs/learning/loss.png]
+                                    [--out-weights-png docs/learning/weights.png]
 
 SEQ_DIR defaults to ``SHARED_TUM / rgbd_dataset_freiburg3_teddy_first200`` (the project's
-development clip, not shipped).
+development clip, not shipped). Each SEQ_DIR gives training items from its ``--train`` frames
+and held-out items from its ``--test`` frames; each ``--test-sequences`` folder is held out
+whole (every frame). All sequences need one image size (the frames are stacked).
 
 Data. Each frame i of a range is a keyframe: its ``num_edges`` edges chosen by
 ``selection.keyframe_edges`` (fixed slots, the config's selection, seed = ``--seed`` + i)
-with their gradient magnitudes. Pairs: frame i + k (k in ``--gaps``, inside the same range)
-is tracked against keyframe i from the identity (no constant-velocity prior: frame-to-frame
-motion is small, and a prior from the ground truth would leak the answer). Windows
-(``--loss window``): frames i + 1 .. i + ``--window`` are tracked in order against keyframe
-i, each from the constant-velocity prediction of the two before it (``learn.track_window``,
-as the tracker does between keyframes; the identity for the first). The true relative poses
-come from the ground truth nearest in time (frames without ground truth within 20 ms are
-left out). Training items come from ``--train`` (frames 0-99), held-out ones from ``--test``
-(frames 100-199); none crosses the two ranges.
+with their gradient magnitudes and depth discontinuities. Pairs: frame i + k (k in
+``--gaps``, inside the same range) is tracked against keyframe i from the identity (no
+constant-velocity prior: frame-to-frame motion is small, and a prior from the ground truth
+would leak the answer). Windows (``--loss window``): frames i + 1 .. i + ``--window`` are
+tracked in order against keyframe i, each from the constant-velocity prediction of the two
+before it (``learn.track_window``). The true poses are the ground truth interpolated at each
+frame's timestamp (``groundtruth_pose_at(..., interpolate=True)``; frames whose ground-truth
+samples around them lie more than 20 ms apart are left out). No item crosses two ranges.
 
-Model. ``learn.track_differentiable(..., adjoint="unrolled", consistency="soft")`` (or
-``track_window``), jitted and ``jax.vmap``-ped over a batch (the frames' distance pyramids
-and direction maps are stacked once on the device and each item gathers its keyframe and
-frames by index inside the jitted function). Loss: with ``--loss pairs`` (the default) the
-mean ``learn.rpe_loss`` (translation m + ``--rot-weight`` x rotation rad) over a batch of
-pairs; with ``--loss window`` the mean ``learn.window_rpe_loss`` of the window's
-consecutive motions (keyframe -> first frame, first -> second, ...) over a batch of
-windows. Optimiser: optax adam, ``--steps`` steps of ``--lr``, minibatches of ``--batch``
-items drawn without replacement (reshuffled each epoch) from
-``numpy.random.default_rng(--seed)``; float32. The same seed gives the same items, batches
-and result (up to XLA's floating-point reduction order). ``reobs_a`` only enters edge
-selection (not differentiated) and stays at its default.
+Model. The smooth training mode, ``learn.track_smooth`` (``--gn-steps`` Gauss-Newton steps
+per level, level 0 first, with ``learn.Smoothing``'s default temperatures), jitted and
+``jax.vmap``-ped over a batch (the frames' distance pyramids and direction maps are stacked
+once on the device; each item gathers its keyframe, frames and camera by index inside the
+jitted function). Loss: with ``--loss pairs`` (the default) the mean ``learn.rpe_loss``
+(translation m + ``--rot-weight`` x rotation rad) over a batch of pairs; with
+``--loss window`` the mean ``learn.window_rpe_loss`` of the window's consecutive motions.
+Optimiser: optax adam, ``--steps`` steps of ``--lr``, minibatches of ``--batch`` items drawn
+without replacement (reshuffled each epoch) from ``numpy.random.default_rng(--seed)``;
+float32. Trained: the Huber radii, eta and the weighting model; ``reobs_a`` (edge selection
+only) and ``log_temperature`` (the other differentiable path's) stay at their defaults.
 
-Report (printed, and written to ``--out-json``): held-out pair RPE (mean and median
-translation error in mm and rotation error in deg over the held-out pairs from the identity,
-``learn.relative_pose_error``) with ``Params.default`` and with the fitted Params, the same on
-the training pairs; the ATE (rigid alignment, TUM's ``evaluate_ate``) and the RPE per second
-(``metrics.rpe``) of full tracker runs (``runner.run_sequence`` with the same config, the
-plain tracker with its hard consistency test) over the held-out frames only, with the
-default and with the fitted Params (``--no-ate`` skips them), and with ``--control-runs N``
-N more with the defaults moved along random directions by as much as the fit moved them (how
-much the ATE moves for a change of that size without fitting); the training loss per step
-(also plotted to ``--out-png``), the fitted Params (``fitted_params``: what ``edgevo run
---params`` reads), and the time of a warm ``value_and_grad`` over one ``--batch``-item batch
-(median of a few calls, printed apart from the first call's compile time). Numbers are
-reported as they come, gain or not.
+Report (printed, and written to ``--out-json``): the pair RPE of the training model over the
+held-out and the training pairs (mean and median translation error in mm, rotation in deg)
+with ``Params.default`` and with the fitted Params; the ATE and the RPE per second
+(``metrics.rpe``) of full runs of the plain tracker (``runner.run_sequence``, hard decisions,
+the same config) over the held-out frames of each sequence, with the default and the fitted
+Params (``--no-ate`` skips them; several held-out parts: their mean, each part under
+``parts``), and with ``--control-runs N`` N more with the defaults moved along random
+directions by as much as the fit moved them; the training loss per step (plotted to
+``--out-png``); the learnt weight against each input of the weighting model (plotted to
+``--out-weights-png``, the other inputs at their medians over the training edges); the fitted
+Params (``fitted_params``: what ``edgevo run --params`` reads); the time of a warm
+``value_and_grad`` over one ``--batch``-item batch (median of a few calls) and of its first
+call (compilation). Numbers are reported as they come, gain or not.
 
 The data are the TUM RGB-D benchmark's (CC BY 4.0): J. Sturm, N. Engelhard, F. Endres,
 W. Burgard, D. Cremers, "A Benchmark for the Evaluation of RGB-D SLAM Systems", IROS 2012.
@@ -62,33 +64,39 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from edgevo_jax import Config, enable_batch_exact
+from edgevo_jax.camera import Intrinsics
 from edgevo_jax.datasets import groundtruth_pose_at, load_sequence, subsequence
 from edgevo_jax.datasets.tum import SHARED_TUM
+from edgevo_jax.frontend.robust import FEATURES, weighting_features, weighting_scale
 from edgevo_jax.frontend.selection import KeyframeEdges, keyframe_edges
 from edgevo_jax.geometry import Pose, inverse_np
 from edgevo_jax.image.interp import stack_edge_maps
 from edgevo_jax.image.preprocess import preprocess
 from edgevo_jax.io import json_safe, poses7_to_matrices
 from edgevo_jax.learn import (
+    Smoothing,
     edge_magnitudes,
     relative_pose_error,
     rpe_loss,
-    track_differentiable,
+    track_smooth,
     track_window,
     window_rpe_loss,
 )
-from edgevo_jax.learn.params import Params, params_to_dict
+from edgevo_jax.learn.params import Params, params_to_dict, weighting_of
 from edgevo_jax.pipeline.run import run_sequence, summarise
 
 DEFAULT_SEQ = SHARED_TUM / "rgbd_dataset_freiburg3_teddy_first200"
-GT_MAX_DIFF = 0.02  # s
+GT_MAX_GAP = 0.02  # s between the ground-truth samples around a frame
+#: Params the fit leaves at their defaults: edge selection only, and the temperature of
+#: the other differentiable path (the smooth mode's temperatures are ``Smoothing``'s)
+FIXED = ("reobs_a", "log_temperature")
 
 
 def say(msg: str) -> None:
@@ -102,8 +110,11 @@ def _range(text: str) -> tuple[int, int]:
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("sequence", nargs="?", type=Path, default=DEFAULT_SEQ,
-                   help="TUM sequence folder (default: the shared fr3_teddy_first200 clip)")
+    p.add_argument("sequences", nargs="*", type=Path, default=[DEFAULT_SEQ],
+                   help="TUM sequence folders, split into --train and --test frames "
+                        "(default: the shared fr3_teddy_first200 clip)")
+    p.add_argument("--test-sequences", nargs="*", type=Path, default=[],
+                   help="TUM sequence folders held out whole")
     p.add_argument("--train", type=_range, default=(0, 100), help="training frames a:b")
     p.add_argument("--test", type=_range, default=(100, 200), help="held-out frames a:b")
     p.add_argument("--gaps", default="1,2,3", help="frame gaps k of the pairs (i, i + k)")
@@ -111,9 +122,14 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="fit on frame pairs or on windows tracked against a keyframe")
     p.add_argument("--window", type=int, default=8, help="frames per window (--loss window)")
     p.add_argument("--num-edges", type=int, default=256, help="keyframe edge slots")
-    p.add_argument("--steps", type=int, default=60, help="adam steps")
+    p.add_argument("--gn-steps", default=",".join(map(str, Smoothing().steps)),
+                   help="Gauss-Newton steps per level of the smooth mode, level 0 first")
+    # the training loss still falls at 60 steps (docs/learning: -4.7 % at 60, -8.5 % at 200)
+    p.add_argument("--steps", type=int, default=200, help="adam steps")
     p.add_argument("--batch", type=int, default=32, help="pairs or windows per minibatch")
-    p.add_argument("--lr", type=float, default=3e-3, help="adam learning rate")
+    # adam moves each parameter by ~lr per step; the weighting model's output layer starts
+    # at zero and needs moves of ~1 to change an edge's weight by tens of percent in 60 steps
+    p.add_argument("--lr", type=float, default=1e-2, help="adam learning rate")
     p.add_argument("--rot-weight", type=float, default=0.1,
                    help="loss = translation (m) + rot_weight * rotation (rad)")
     p.add_argument("--seed", type=int, default=0)
@@ -124,49 +140,83 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="held-out runs with the defaults moved at random by the fit's step")
     p.add_argument("--out-json", type=Path, default=Path("docs/learning/learn_weights.json"))
     p.add_argument("--out-png", type=Path, default=Path("docs/learning/loss.png"))
+    p.add_argument("--out-weights-png", type=Path, default=Path("docs/learning/weights.png"))
     return p.parse_args(argv)
 
 
-def build_data(seq, frames: list[int], keyframes: list[int], config: Config,
-               seed: int) -> dict[str, Any]:
-    """Preprocess ``frames`` once; keyframe edges for every keyframe used; stacked arrays."""
-    index = {f: j for j, f in enumerate(frames)}
+class Part(NamedTuple):
+    """Frames a:b of one sequence, with the true pose (4, 4) of each frame that has one."""
+
+    seq: Any
+    index: int  # of the sequence in the run
+    frames: tuple[int, int]
+    gt: dict[int, np.ndarray]
+
+    def pairs(self, gaps: list[int]) -> list[tuple[tuple[int, int], tuple[int, int]]]:
+        a, b = self.frames
+        return [((self.index, i), (self.index, i + k)) for i in range(a, b) for k in gaps
+                if i + k < b and i in self.gt and i + k in self.gt]
+
+    def windows(self, size: int) -> list[tuple[tuple[int, int], list[tuple[int, int]]]]:
+        a, b = self.frames
+        return [((self.index, i), [(self.index, j) for j in range(i + 1, i + 1 + size)])
+                for i in range(a, b - size)
+                if all(f in self.gt for f in range(i, i + 1 + size))]
+
+
+def make_part(seq, index: int, frames: tuple[int, int]) -> Part:
+    a, b = max(0, frames[0]), min(frames[1], len(seq))
+    gt = {}
+    for f in range(a, b):
+        p = groundtruth_pose_at(seq, float(seq.timestamps[f]), GT_MAX_GAP, interpolate=True)
+        if p is not None:
+            gt[f] = poses7_to_matrices(p[None])[0]
+    return Part(seq, index, (a, b), gt)
+
+
+def build_data(seqs: list, frames: list[tuple[int, int]], keyframes: list[tuple[int, int]],
+               config: Config, seed: int) -> dict[str, Any]:
+    """Preprocess ``frames`` ((sequence, frame) keys) once; keyframe edges (magnitudes and
+    depth discontinuities included) and the camera of every keyframe; stacked arrays."""
     dist_levels: list[list[np.ndarray]] = [[] for _ in range(config.num_levels)]
-    grads, kfs = [], {}
-    for f in frames:
-        frame = preprocess(*seq.load_frame(f), config)
+    maps, kfs, shapes = [], {}, set()
+    for key in frames:
+        seq = seqs[key[0]]
+        frame = preprocess(*seq.load_frame(key[1]), config)
+        shapes.add(frame.shape)
         for lvl, d in enumerate(frame.dist):
             dist_levels[lvl].append(d)
-        grads.append(frame.edge_map)
-        if f in keyframes:
-            e = keyframe_edges(frame, config, seed=seed + f, intr=seq.intrinsics)
-            kfs[f] = (e, edge_magnitudes(frame, e))
-    k_index = {f: j for j, f in enumerate(keyframes)}
+        maps.append(frame.edge_map)
+        if key in keyframes:
+            e = keyframe_edges(frame, config, seed=seed + key[1], intr=seq.intrinsics)
+            kfs[key] = e._replace(mag=edge_magnitudes(frame, e))
+    if len(shapes) > 1:
+        raise ValueError(f"the sequences have different image sizes {sorted(shapes)}: "
+                         f"fit on sequences of one camera size at a time")
     stack = lambda xs: jnp.asarray(np.stack(xs))  # noqa: E731
-    kf = KeyframeEdges(stack([np.asarray(kfs[f][0].uv, np.float32) for f in keyframes]),
-                       stack([np.asarray(kfs[f][0].rho, np.float32) for f in keyframes]),
-                       stack([np.asarray(kfs[f][0].grad, np.float32) for f in keyframes]),
-                       stack([np.asarray(kfs[f][0].valid) for f in keyframes]))
+    kf = KeyframeEdges(*(stack([np.asarray(getattr(kfs[k], f), np.float32 if f != "valid"
+                                           else bool) for k in keyframes])
+                         for f in ("uv", "rho", "grad", "valid", "mag")),
+                       disc=stack([np.asarray(kfs[k].disc, np.float32) for k in keyframes]))
+    intr = stack([np.asarray(seqs[k[0]].intrinsics, np.float32) for k in keyframes])
     return {
         "dist": tuple(stack(d) for d in dist_levels),
-        "edge_map": jax.tree.map(jnp.asarray, stack_edge_maps(grads)),
-        "kf": kf,
-        "mag": stack([kfs[f][1] for f in keyframes]),
-        "kf_index": k_index,
-        "frame_index": index,
+        "edge_map": jax.tree.map(jnp.asarray, stack_edge_maps(maps)),
+        "kf": kf, "intr": intr,
+        "kf_index": {k: j for j, k in enumerate(keyframes)},
+        "frame_index": {k: j for j, k in enumerate(frames)},
     }
 
 
-def pair_arrays(pairs: list[tuple[int, int]], gt: dict[int, np.ndarray], data: dict):
-    """(kf slot, target frame slot, T_gt (P, 4, 4)) of the pairs."""
+def pair_arrays(pairs, gt: dict, data: dict):
+    """(kf slot, target frame slot, T_gt (P, 4, 4)) of the pairs; gt by (sequence, frame)."""
     ki = np.array([data["kf_index"][i] for i, _ in pairs], np.int32)
     fi = np.array([data["frame_index"][j] for _, j in pairs], np.int32)
     T = np.stack([inverse_np(gt[j]) @ gt[i] for i, j in pairs]).astype(np.float32)
     return jnp.asarray(ki), jnp.asarray(fi), jnp.asarray(T)
 
 
-def window_arrays(windows: list[tuple[int, list[int]]], gt: dict[int, np.ndarray],
-                  data: dict):
+def window_arrays(windows, gt: dict, data: dict):
     """(kf slot, frame slots (B, W), true poses (B, W + 1, 4, 4)) of the windows: the poses
     T_kf_cam of the keyframe (identity) and of each frame, relative to the keyframe."""
     ki = np.array([data["kf_index"][i] for i, _ in windows], np.int32)
@@ -175,27 +225,28 @@ def window_arrays(windows: list[tuple[int, list[int]]], gt: dict[int, np.ndarray
     return jnp.asarray(ki), jnp.asarray(fi), jnp.asarray(P.astype(np.float32))
 
 
-def make_functions(data: dict, intr, config: Config, rot_weight: float, loss_kind: str):
+def make_functions(data: dict, config: Config, smoothing: Smoothing, rot_weight: float,
+                   loss_kind: str):
     """Jitted batch functions of (params, kf slots, frame slots, truth): the training loss's
-    value_and_grad and value (pairs or windows), and the pair errors."""
-    arrays = (data["kf"], data["mag"], data["dist"], data["edge_map"])
+    value_and_grad and per-item values (pairs or windows), and the pair errors."""
+    arrays = (data["kf"], data["intr"], data["dist"], data["edge_map"])
     eye = jnp.eye(4, dtype=jnp.float32)
+    options = {"smoothing": smoothing}
 
     def gather(arrays, ki, fi):
-        kf_all, mag_all, dist_all, ng_all = arrays
+        kf_all, intr_all, dist_all, maps_all = arrays
         kf = jax.tree.map(lambda x: x[ki], kf_all)
         dist = tuple(d[fi] for d in dist_all)
-        return kf, mag_all[ki], dist, jax.tree.map(lambda x: x[fi], ng_all)
+        return kf, Intrinsics(*intr_all[ki]), dist, jax.tree.map(lambda x: x[fi], maps_all)
 
     def pair(params, arrays, ki, fi):
-        kf, mag, dist, ng = gather(arrays, ki, fi)
-        return track_differentiable(kf, dist, ng, eye, intr, params, config, mag=mag,
-                                    adjoint="unrolled").T_c_k
+        kf, intr, dist, em = gather(arrays, ki, fi)
+        return track_smooth(kf, dist, em, eye, intr, params, config, **options).T_c_k
 
     def window(params, arrays, ki, fi):  # fi (W,): poses T_kf_cam, keyframe first
-        kf, mag, dist, ng = gather(arrays, ki, fi)
-        T = track_window(kf, dist, ng, eye, eye, intr, params, config, mag=mag,
-                         adjoint="unrolled").T_c_k
+        kf, intr, dist, em = gather(arrays, ki, fi)
+        T = track_window(kf, dist, em, eye, eye, intr, params, config, track=track_smooth,
+                         **options).T_c_k
         inv = Pose.from_matrix(T, orthonormalise=None).inverse().as_matrix()
         return jnp.concatenate([eye[None], inv])
 
@@ -252,14 +303,15 @@ def mean_loss(losses_fn, params, items, batch: int) -> float:
     return float(np.mean(np.concatenate(parts)))
 
 
-def run_ate(seq, frames: tuple[int, int], config: Config, params: Params | None) -> dict:
-    """ATE (m, TUM's evaluate_ate) and RPE per second of a full tracker run over ``frames``
-    (the plain tracker: hard consistency test) with ``params`` (None: the defaults)."""
-    part = subsequence(seq, *frames)
+def run_part(part: Part, config: Config, params: Params | None) -> dict:
+    """ATE (m, TUM's evaluate_ate) and RPE per second of a full run of the plain tracker
+    over the part's frames with ``params`` (None: the defaults)."""
+    seq = subsequence(part.seq, *part.frames)
     t0 = time.perf_counter()
-    run = run_sequence(part, config, progress=False, params=params)
-    stats = summarise(run, part)
-    return {"frames": len(run.results), "keyframes": run.num_keyframes,
+    run = run_sequence(seq, config, progress=False, params=params)
+    stats = summarise(run, seq)
+    return {"sequence": part.seq.name, "frame_range": list(part.frames),
+            "frames": len(run.results), "keyframes": run.num_keyframes,
             "lost": stats["lost"], "weak": stats["weak"],
             "ate_rmse_m": stats.get("ate_rmse_m"),
             "rpe_rmse_m_per_s": stats.get("rpe_rmse_m_per_s"),
@@ -268,13 +320,27 @@ def run_ate(seq, frames: tuple[int, int], config: Config, params: Params | None)
             "run_s": time.perf_counter() - t0}
 
 
-def control_runs(seq, frames: tuple[int, int], config: Config, params0: Params,
-                 fitted: Params, n: int, seed: int) -> dict:
-    """How much the held-out ATE moves for a change of Params of the fit's size without any
-    fitting: ``n`` runs with the default Params moved along random directions (seeded by
+def run_parts(parts: list[Part], config: Config, params: Params | None) -> dict:
+    """``run_part`` of every held-out part; the error metrics are their means (over the
+    parts that have them), the counts their sums, each part under ``parts``."""
+    runs = [run_part(p, config, params) for p in parts]
+    out: dict[str, Any] = {}
+    for key in ("ate_rmse_m", "rpe_rmse_m_per_s", "rpe_rmse_deg_per_s"):
+        vals = [r[key] for r in runs if r[key] is not None]
+        out[key] = float(np.mean(vals)) if vals else None
+    for key in ("frames", "keyframes", "lost", "weak", "run_s"):
+        out[key] = sum(r[key] for r in runs)
+    out["parts"] = runs
+    return out
+
+
+def control_runs(parts: list[Part], config: Config, params0: Params, fitted: Params, n: int,
+                 seed: int) -> dict:
+    """How much the held-out results move for a change of Params of the fit's size without
+    any fitting: ``n`` runs with the default Params moved along random directions (seeded by
     ``seed``) by as much as the fit moved them (the same norm over the fitted leaves)."""
     rng = np.random.default_rng(seed + 1)
-    moved = [name for name in Params._fields if name != "reobs_a"]
+    moved = [name for name in Params._fields if name not in FIXED]
     step = {k: np.asarray(getattr(fitted, k), np.float64) - np.asarray(getattr(params0, k))
             for k in moved}
     norm = float(np.sqrt(sum(np.sum(d * d) for d in step.values())))
@@ -284,18 +350,23 @@ def control_runs(seq, frames: tuple[int, int], config: Config, params0: Params,
         scale = norm / float(np.sqrt(sum(np.sum(d * d) for d in direction.values())))
         p = params0._replace(**{k: jnp.asarray(np.asarray(getattr(params0, k)) + scale * d,
                                                jnp.float32) for k, d in direction.items()})
-        runs.append(run_ate(seq, frames, config, p))
+        runs.append(run_parts(parts, config, p))
     return {"step_norm": norm, "runs": runs,
             "note": "default Params moved along random directions by the fit's step norm"}
 
 
-def save_plot(losses: list[float], full: list[float], path: Path, title: str,
-              what: str) -> None:
+def _figure(width: float, height: float):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(5, 3), dpi=80)
+    fig = Figure(figsize=(width, height), dpi=80)
     FigureCanvasAgg(fig)
+    return fig
+
+
+def save_plot(losses: list[float], full: list[float], path: Path, title: str,
+              what: str) -> None:
+    fig = _figure(5, 3)
     ax = fig.add_subplot(1, 1, 1)
     ax.plot(np.arange(len(losses)), losses, marker="o", markersize=2, lw=0.8, alpha=0.6,
             label="minibatch (before its step)")
@@ -310,6 +381,66 @@ def save_plot(losses: list[float], full: list[float], path: Path, title: str,
     fig.savefig(path)
 
 
+def weight_curves(params: Params, config: Config, data: dict, points: int = 41) -> dict:
+    """The learnt weight (the model's scale of the Huber weight) against each input of the
+    weighting model, the other inputs at their medians over the training keyframes' edges
+    (residual: half the gate; level: 0); and each input's 5-95 % range over those edges."""
+    kf = data["kf"]
+    valid = np.asarray(kf.valid)
+    mag, rho, disc = (np.asarray(x)[valid] for x in (kf.mag, kf.rho, kf.disc))
+    gate = float(config.max_residual[0])
+    model = weighting_of(params, config)
+    features = np.asarray(weighting_features(
+        jnp.asarray(mag), jnp.asarray(rho), jnp.asarray(disc),
+        jnp.full(mag.shape, 0.5 * gate), gate, 0.0, float(model.mag_scale)))
+    median = np.median(features, axis=1)
+    lo, hi = np.percentile(features, [5, 95], axis=1)
+    lo[3], hi[3], lo[4], hi[4] = 0.0, 1.0, 0.0, 1.0  # residual / gate, level feature
+    out = {}
+    for i, name in enumerate(FEATURES):
+        x = np.linspace(lo[i], hi[i], points)
+        f = np.repeat(median[:, None], points, axis=1)
+        f[i] = x
+        out[name] = {"feature": x.tolist(),
+                     "weight": np.asarray(weighting_scale(model, jnp.asarray(f))).tolist(),
+                     "edges_5_95": [float(lo[i]), float(hi[i])]}
+    return out
+
+
+def save_weights_plot(curves: dict, path: Path, title: str) -> None:
+    fig = _figure(9, 5)
+    labels = {"gradient magnitude": "log(m / canny_high)", "depth": "log depth (m)",
+              "depth discontinuity": "log(1 + 10 (max - min) / z)",
+              "residual": "residual / gate", "level": "level / (L - 1)",
+              "re-observation": "1 / (1 + exp(a - m))"}
+    for i, (name, c) in enumerate(curves.items()):
+        ax = fig.add_subplot(2, 3, i + 1)
+        ax.plot(c["feature"], c["weight"], lw=1.8)
+        ax.axhline(1.0, color="gray", lw=0.8, ls="--")
+        ax.set_xlabel(labels.get(name, name), fontsize=8)
+        ax.set_ylabel("weight scale", fontsize=8)
+        ax.set_title(name, fontsize=9)
+        ax.grid(alpha=0.3)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+
+
+def load_all(paths: list[Path]) -> list | str:
+    """The sequences, or the message naming the one that cannot be used."""
+    seqs = []
+    for path in paths:
+        if not path.is_dir():
+            return (f"sequence folder not found: {path} (the fr3_teddy_first200 clip lives in "
+                    f"{SHARED_TUM}; pass another TUM folder as the first argument)")
+        seq = load_sequence(path)
+        if seq.groundtruth is None:
+            return f"{seq.name} has no groundtruth.txt: nothing to fit against"
+        seqs.append(seq)
+    return seqs
+
+
 def main(argv: list[str] | None = None) -> int:
     enable_batch_exact()  # the CLI's arithmetic: trajectories as `edgevo run` gives them
     try:
@@ -318,54 +449,55 @@ def main(argv: list[str] | None = None) -> int:
         say("optax is missing: pip install 'optax>=0.2' (or the package's 'learn' extra)")
         return 2
     args = parse_args(argv)
-    if not args.sequence.is_dir():
-        say(f"sequence folder not found: {args.sequence} (the fr3_teddy_first200 clip lives in "
-            f"{SHARED_TUM}; pass another TUM folder as the first argument)")
-        return 2
     t_start = time.perf_counter()
-    seq = load_sequence(args.sequence)
-    if seq.groundtruth is None:
-        say(f"{seq.name} has no groundtruth.txt: nothing to fit against")
+    seqs = load_all(list(args.sequences) + list(args.test_sequences))
+    if isinstance(seqs, str):
+        say(seqs)
         return 2
+    n_split = len(args.sequences)
     config = Config(num_edges=args.num_edges)
+    smoothing = Smoothing(steps=tuple(int(x) for x in args.gn_steps.split(",")))
+    if len(smoothing.steps) != config.num_levels:
+        say(f"--gn-steps needs {config.num_levels} numbers (one per level), got "
+            f"{args.gn_steps}")
+        return 2
     gaps = [int(g) for g in args.gaps.split(",")]
-    n = len(seq)
-    ranges = {"train": (args.train[0], min(args.train[1], n)),
-              "test": (args.test[0], min(args.test[1], n))}
-    gt: dict[int, np.ndarray] = {}
-    for a, b in ranges.values():
-        for f in range(a, b):
-            p = groundtruth_pose_at(seq, float(seq.timestamps[f]), GT_MAX_DIFF)
-            if p is not None:
-                gt[f] = poses7_to_matrices(p[None])[0]
-    pairs_of = {name: [(i, i + k) for i in range(a, b) for k in gaps
-                       if i + k < b and i in gt and i + k in gt]
-                for name, (a, b) in ranges.items()}
-    a, b = ranges["train"]
-    windows = [(i, list(range(i + 1, i + 1 + args.window))) for i in range(a, b - args.window)
-               if all(f in gt for f in range(i, i + 1 + args.window))]
+    train_parts = [make_part(s, i, args.train) for i, s in enumerate(seqs[:n_split])]
+    test_parts = [make_part(s, i, args.test) for i, s in enumerate(seqs[:n_split])]
+    test_parts += [make_part(s, n_split + i, (0, len(s)))
+                   for i, s in enumerate(seqs[n_split:])]
+    pairs_of = {"train": [p for part in train_parts for p in part.pairs(gaps)],
+                "test": [p for part in test_parts for p in part.pairs(gaps)]}
+    windows = [w for part in train_parts for w in part.windows(args.window)]
     for name, pairs in pairs_of.items():
         if not pairs:
-            say(f"no {name} pairs with ground truth in frames {ranges[name]} of {seq.name}")
+            say(f"no {name} pairs with ground truth in frames "
+                f"{args.train if name == 'train' else args.test} of the sequences")
             return 2
     if args.loss == "window" and not windows:
-        say(f"no training window of {args.window} frames with ground truth in {ranges['train']}")
+        say(f"no training window of {args.window} frames with ground truth in {args.train}")
         return 2
+    gt = {(part.index, f): T for part in train_parts + test_parts for f, T in part.gt.items()}
     used = list(windows) if args.loss == "window" else []
     frames = sorted({f for pairs in pairs_of.values() for pr in pairs for f in pr}
                     | {f for i, js in used for f in (i, *js)})
     keyframes = sorted({i for pairs in pairs_of.values() for i, _ in pairs}
                        | {i for i, _ in used})
     items_name = "windows" if args.loss == "window" else "pairs"
-    say(f"{seq.name}: {len(pairs_of['train'])} training and {len(pairs_of['test'])} held-out "
+    names = ", ".join(s.name for s in seqs)
+    say(f"{names}: {len(pairs_of['train'])} training and {len(pairs_of['test'])} held-out "
         f"pairs" + (f", {len(used)} training windows" if used else "")
         + f", {len(frames)} frames to preprocess")
     t0 = time.perf_counter()
-    data = build_data(seq, frames, keyframes, config, args.seed)
+    try:
+        data = build_data(seqs, frames, keyframes, config, args.seed)
+    except ValueError as e:
+        say(str(e))
+        return 2
     prep_s = time.perf_counter() - t0
     say(f"preprocessing and edge selection: {prep_s:.1f} s")
 
-    vg, value, err = make_functions(data, seq.intrinsics, config, args.rot_weight, args.loss)
+    vg, value, err = make_functions(data, config, smoothing, args.rot_weight, args.loss)
     train_pairs = pair_arrays(pairs_of["train"], gt, data)
     test_pairs = pair_arrays(pairs_of["test"], gt, data)
     train = window_arrays(used, gt, data) if used else train_pairs
@@ -401,10 +533,7 @@ def main(argv: list[str] | None = None) -> int:
               "train": evaluate(err, params0, *train_pairs, batch, args.rot_weight)}
     eval_s = time.perf_counter() - t0
 
-    opt = optax.adam(args.lr)
-    # reobs_a only enters the (non-differentiated) selection: keep it fixed
-    mask = Params(*(name != "reobs_a" for name in Params._fields))
-    opt = optax.masked(opt, mask)
+    opt = optax.masked(optax.adam(args.lr), Params(*(n not in FIXED for n in Params._fields)))
     state = opt.init(params0)
     params = params0
     losses: list[float] = []
@@ -425,10 +554,11 @@ def main(argv: list[str] | None = None) -> int:
         say(f"step {step + 1:3d}/{args.steps}: minibatch loss {float(loss_value):.5f}, "
             f"all training {items_name} {full[-1]:.5f}")
     train_s = time.perf_counter() - t0
+    print(f"training loss over all {n_train} training {items_name}: {full[0]:.6f} -> "
+          f"{full[-1]:.6f} ({100.0 * (full[-1] / full[0] - 1.0):+.1f} %)")
 
     after = {"test": evaluate(err, params, *test_pairs, batch, args.rot_weight),
              "train": evaluate(err, params, *train_pairs, batch, args.rot_weight)}
-
     for split in ("test", "train"):
         b, a = before[split], after[split]
         label = "held-out" if split == "test" else "training"
@@ -438,39 +568,43 @@ def main(argv: list[str] | None = None) -> int:
 
     ate: dict[str, Any] = {"skipped": "--no-ate"}
     if not args.no_ate:
-        test_frames = ranges["test"]
-        ate = {"frames": list(test_frames),
-               "default": run_ate(seq, test_frames, config, None),
-               "fitted": run_ate(seq, test_frames, config, params),
-               "note": "full runs of the plain tracker (hard consistency test) over the "
-                       "held-out frames only, the same config as the fit"}
+        ate = {"frames": list(test_parts[0].frames) if len(test_parts) == 1 else
+               [[p.seq.name, *p.frames] for p in test_parts],
+               "default": run_parts(test_parts, config, None),
+               "fitted": run_parts(test_parts, config, params),
+               "note": "full runs of the plain tracker (hard decisions) over the held-out "
+                       "frames only, the same config as the fit; several parts: means"}
         d, f = ate["default"], ate["fitted"]
-        print(f"held-out run over frames {test_frames[0]}-{test_frames[1] - 1}: ATE "
-              f"{_mm(d['ate_rmse_m'])} -> {_mm(f['ate_rmse_m'])} mm, RPE "
+        print(f"held-out runs: ATE {_mm(d['ate_rmse_m'])} -> {_mm(f['ate_rmse_m'])} mm, RPE "
               f"{_mm(d['rpe_rmse_m_per_s'])} -> {_mm(f['rpe_rmse_m_per_s'])} mm/s  "
               f"[default -> fitted]")
         if args.control_runs > 0:
-            ate["control"] = control_runs(seq, test_frames, config, params0, params,
+            ate["control"] = control_runs(test_parts, config, params0, params,
                                           args.control_runs, args.seed)
-            c = [r["ate_rmse_m"] for r in ate["control"]["runs"]]
+            c = ate["control"]["runs"]
             print(f"control: default Params moved at random by the fit's step size, "
-                  f"{len(c)} runs: ATE {', '.join(_mm(x) for x in c)} mm")
+                  f"{len(c)} runs: RPE {', '.join(_mm(x['rpe_rmse_m_per_s']) for x in c)} "
+                  f"mm/s, ATE {', '.join(_mm(x['ate_rmse_m']) for x in c)} mm")
 
     fitted: dict[str, Any] = params_to_dict(params)
     fitted["huber_delta"] = np.exp(np.asarray(params.log_huber)).tolist()
-    fitted["temperature"] = float(np.exp(np.asarray(params.log_temperature)))
+    curves = weight_curves(params, config, data)
     report = {
-        "sequence": str(seq.root), "sequence_name": seq.name,
+        "sequence": str(seqs[0].root), "sequence_name": seqs[0].name,
+        "sequences": [str(s.root) for s in seqs[:n_split]],
+        "test_sequences": [str(s.root) for s in seqs[n_split:]],
         "settings": {
-            "train_frames": list(ranges["train"]), "test_frames": list(ranges["test"]),
+            "train_frames": list(train_parts[0].frames if train_parts else args.train),
+            "test_frames": list(test_parts[0].frames if test_parts else args.test),
             "gaps": gaps, "loss_kind": args.loss,
             "window": args.window if args.loss == "window" else None,
             "num_edges": args.num_edges, "steps": args.steps, "batch": batch,
             "lr": args.lr, "rot_weight": args.rot_weight, "seed": args.seed,
-            "adjoint": "unrolled", "consistency": "soft",
+            "mode": "smooth (learn.track_smooth)", "smoothing": smoothing._asdict(),
             "T_init": "identity (pairs); constant velocity from the identity (windows)",
-            "dtype": "float32", "iterations": list(config.iterations),
-            "selection": config.selection, "optimizer": "optax.adam (reobs_a held fixed)",
+            "ground_truth": "interpolated at each frame's timestamp",
+            "dtype": "float32", "selection": config.selection,
+            "optimizer": f"optax.adam ({', '.join(FIXED)} held fixed)",
             "loss": ("mean over the batch of window_rpe_loss (consecutive motions of the "
                      "window, keyframe first)" if args.loss == "window" else
                      "mean over the batch of rpe_loss") +
@@ -480,12 +614,13 @@ def main(argv: list[str] | None = None) -> int:
         "training_items": {"kind": items_name, "count": n_train},
         "rpe": {"default": before, "fitted": after,
                 "units": "t: mm, r: deg, of E = T_gt^-1 T_est per pair, tracked from the "
-                         "identity"},
+                         "identity by the training model"},
         "ate": ate,
         "loss_curve": {"minibatch": losses, f"all_training_{items_name}": full,
                        "note": "minibatch[s] is the loss of step s's batch before its update; "
                                f"all_training_{items_name}[s] the loss over every training "
                                "item after s steps (s = 0: default Params)"},
+        "weights": curves,
         "fitted_params": fitted,
         "default_params": params_to_dict(params0),
         "timing": {
@@ -502,8 +637,10 @@ def main(argv: list[str] | None = None) -> int:
     args.out_json.parent.mkdir(parents=True, exist_ok=True)
     args.out_json.write_text(json.dumps(json_safe(report), indent=2) + "\n")
     save_plot(losses, full, args.out_png,
-              f"{seq.name}: {n_train} {items_name}, batch {batch}, lr {args.lr}", items_name)
-    print(f"wrote {args.out_json} and {args.out_png}")
+              f"{names}: {n_train} {items_name}, batch {batch}, lr {args.lr}", items_name)
+    save_weights_plot(curves, args.out_weights_png,
+                      f"learnt weight against each input (others at their medians), {names}")
+    print(f"wrote {args.out_json}, {args.out_png} and {args.out_weights_png}")
     return 0
 
 

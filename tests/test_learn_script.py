@@ -31,14 +31,17 @@ def _numbers(obj):
 
 def test_learn_weights_runs_on_the_bundled_clip(tmp_path, capsys):
     out_json, out_png = tmp_path / "log.json", tmp_path / "loss.png"
+    weights_png = tmp_path / "weights.png"
     rc = load_script("learn_weights").main([
         str(BUNDLED_CLIP), "--train", "0:5", "--test", "5:10", "--gaps", "1,2",
         "--num-edges", "64", "--steps", "2", "--batch", "4", "--timing-reps", "1",
-        "--control-runs", "1",
+        "--control-runs", "1", "--gn-steps", "3,2,2",
         "--out-json", str(out_json), "--out-png", str(out_png),
+        "--out-weights-png", str(weights_png),
     ])
     assert rc == 0
-    assert out_png.is_file() and out_png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    for png in (out_png, weights_png):
+        assert png.is_file() and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     report = json.loads(out_json.read_text())
     a, b = report["settings"]["test_frames"]  # 5:9 (the clip has 9 frames)
     for which in ("default", "fitted"):  # full tracker runs over the held-out frames only
@@ -60,6 +63,10 @@ def test_learn_weights_runs_on_the_bundled_clip(tmp_path, capsys):
     numbers += [report["ate"][w]["ate_rmse_m"] for w in ("default", "fitted")]
     assert numbers and all(x is not None and math.isfinite(x) for x in numbers)
     assert report["timing"]["value_and_grad_warm_s"] > 0
+    curves = report["weights"]  # the learnt weight against each input, all six
+    assert len(curves) == 6 and all(len(c["weight"]) == len(c["feature"]) > 1
+                                    for c in curves.values())
+    assert all(0 < w < 2 for c in curves.values() for w in c["weight"])
     assert "value_and_grad over 4 pairs" in capsys.readouterr().out
 
 
@@ -71,7 +78,8 @@ def test_learn_weights_window_loss(tmp_path, capsys):
         str(BUNDLED_CLIP), "--train", "0:5", "--test", "5:10", "--gaps", "1",
         "--loss", "window", "--window", "3", "--num-edges", "64", "--steps", "1",
         "--batch", "2", "--timing-reps", "1", "--no-ate",
-        "--out-json", str(out_json), "--out-png", str(tmp_path / "loss.png"),
+        "--gn-steps", "3,2,2", "--out-json", str(out_json),
+        "--out-png", str(tmp_path / "loss.png"), "--out-weights-png", str(tmp_path / "w.png"),
     ])
     assert rc == 0
     report = json.loads(out_json.read_text())

@@ -112,9 +112,9 @@ def normal_equations(
     if knobs.weighting is None:
         system = robust_system(r, J, mask, kf.valid, delta, gate)
         return system if extra is None else LevelSystem(system.sums + extra)
-    if kf.mag is None:
-        raise ValueError("the per-edge weighting model needs KeyframeEdges.mag")
-    weight, slope = edge_weights(knobs.weighting, kf.mag, kf.rho, r, gate, level)
+    if kf.mag is None or kf.disc is None:
+        raise ValueError("the per-edge weighting model needs KeyframeEdges.mag and .disc")
+    weight, slope = edge_weights(knobs.weighting, kf.mag, kf.rho, kf.disc, r, gate, level)
     system = robust_system(r, J, mask, kf.valid, delta, gate, weight=weight,
                            weight_slope=slope)
     return system if extra is None else LevelSystem(system.sums + extra)
@@ -166,6 +166,8 @@ def robust_system(
     weight: jnp.ndarray | None = None,
     reject: jnp.ndarray | None = None,
     weight_slope: jnp.ndarray | None = None,
+    *,
+    ordered: bool = True,
 ) -> LevelSystem:
     """Huber-weighted normal equations of residuals r (K,) with Jacobian J (6, K) over the
     inliers ``mask``; every other ``valid`` edge costs the gate's Huber cost.
@@ -176,6 +178,11 @@ def robust_system(
     the weight depends on the residual, so that g stays the gradient of the cost (the term
     weight_slope * Huber cost joins J^T W r; H keeps the Gauss-Newton weights). Without them
     this is the plain tracker's system.
+
+    ``ordered``: each sum added edge by edge in a fixed order (``sum_rows``: the same bits
+    alone and in a batch); False forms H and g as matrix products, which reverse mode
+    differentiates several times faster (the smooth training mode, ``learn.smooth``) and
+    whose rounding XLA chooses.
     """
     w = huber_weights(r, delta)
     inlier_cost = huber_cost(r, delta)
@@ -188,11 +195,15 @@ def robust_system(
     if weight_slope is not None:
         wr = wr + jnp.where(mask, weight_slope * huber_cost(r, delta), 0.0)
     outside = jnp.where(valid, huber_cost(gate, delta), 0.0)
+    tail = [jnp.where(mask, inlier_cost, outside), mask.astype(r.dtype),
+            jnp.where(mask, r, 0.0)]
+    if not ordered:
+        H = (J * w) @ J.T
+        sums = [H[np.triu_indices(6)], J @ wr, jnp.sum(jnp.stack(tail), axis=1)]
+        return LevelSystem(jnp.concatenate(sums))
     rows = [J[i] * w * J[j] for i in range(6) for j in range(i, 6)]
     rows += [J[i] * wr for i in range(6)]
-    rows += [jnp.where(mask, inlier_cost, outside), mask.astype(r.dtype),
-             jnp.where(mask, r, 0.0)]
-    return LevelSystem(sum_rows(rows))
+    return LevelSystem(sum_rows(rows + tail))
 
 
 def solve_spd(A: jnp.ndarray, B: jnp.ndarray) -> jnp.ndarray:

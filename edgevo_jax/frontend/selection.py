@@ -29,6 +29,7 @@ import math
 from functools import partial
 from typing import NamedTuple
 
+import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -49,7 +50,9 @@ class KeyframeEdges(NamedTuple):
     (padding slots are False and hold rho = 1), and mag (K,) the gradient magnitude (0 in
     padding slots; None when not known: only the per-edge weighting model reads it);
     depth_pts (3, M) and depth_normals (3, M): the keyframe's depth points for the optional
-    depth residual (``depth.depth_points``; None without it)."""
+    depth residual (``depth.depth_points``; None without it); disc (K,) each edge's depth
+    discontinuity (``depth_discontinuity``; 0 in padding slots; None when not known: only
+    the weighting model reads it)."""
 
     uv: jnp.ndarray
     rho: jnp.ndarray
@@ -58,16 +61,23 @@ class KeyframeEdges(NamedTuple):
     mag: jnp.ndarray | None = None
     depth_pts: jnp.ndarray | None = None
     depth_normals: jnp.ndarray | None = None
+    disc: jnp.ndarray | None = None
 
 
 class Candidates(NamedTuple):
     """Culled edges of one keyframe (numpy, struct of arrays): uv (2, N), rho (N,),
-    grad (2, N), mag (N,)."""
+    grad (2, N), mag (N,), disc (N,) (``depth_discontinuity``)."""
 
     uv: np.ndarray
     rho: np.ndarray
     grad: np.ndarray
     mag: np.ndarray
+    disc: np.ndarray
+
+    def subset(self, idx: np.ndarray) -> Candidates:
+        """The candidates ``idx``."""
+        return Candidates(self.uv[:, idx], self.rho[idx], self.grad[:, idx], self.mag[idx],
+                          self.disc[idx])
 
 
 def cull(frame: Frame, config: Config) -> np.ndarray:
@@ -76,13 +86,34 @@ def cull(frame: Frame, config: Config) -> np.ndarray:
     return np.flatnonzero(keep)
 
 
+#: Side of the square window of ``depth_discontinuity`` (pixels).
+DISCONTINUITY_WINDOW = 5
+
+
+def depth_discontinuity(depth: np.ndarray | None, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """(max - min) / z of the valid depths (m) in the ``DISCONTINUITY_WINDOW`` square around
+    each edge pixel uv (2, N) of depth z (N,) m: ~0.01-0.05 on a smooth surface, ~0.1-1 where
+    the edge lies on an occluding contour (its depth may be the background's or the
+    foreground's). Missing depth (0 or NaN) is left out; zeros (N,) without a depth image."""
+    if depth is None or uv.shape[1] == 0:
+        return np.zeros(uv.shape[1], np.float32)
+    d = np.nan_to_num(np.asarray(depth, np.float32), nan=0.0)
+    kernel = np.ones((DISCONTINUITY_WINDOW, DISCONTINUITY_WINDOW), np.uint8)
+    high = cv2.dilate(d, kernel)
+    low = cv2.erode(np.where(d > 0, d, np.float32(np.inf)), kernel)
+    h, w = d.shape
+    u = np.clip(np.rint(uv[0]).astype(int), 0, w - 1)
+    v = np.clip(np.rint(uv[1]).astype(int), 0, h - 1)
+    spread = np.maximum(high[v, u] - np.minimum(low[v, u], z), 0.0)
+    return (spread / z).astype(np.float32)
+
+
 def candidates(frame: Frame, config: Config) -> Candidates:
     """The culled edges of a frame."""
     idx = cull(frame, config)
-    return Candidates(
-        uv=frame.edge_uv[idx].T.copy(), rho=1.0 / frame.edge_depth[idx],
-        grad=frame.edge_grad[idx].T.copy(), mag=frame.edge_mag[idx],
-    )
+    uv, z = frame.edge_uv[idx].T.copy(), frame.edge_depth[idx]
+    return Candidates(uv=uv, rho=1.0 / z, grad=frame.edge_grad[idx].T.copy(),
+                      mag=frame.edge_mag[idx], disc=depth_discontinuity(frame.depth, uv, z))
 
 
 def reobservation_probability(mag: jnp.ndarray, a: float) -> jnp.ndarray:
@@ -305,8 +336,7 @@ def select(
     rng = np.random.default_rng(seed)
     if n > config.max_edges:  # more candidates than slots: a seeded subset (fixed shapes)
         keep = np.sort(rng.choice(n, config.max_edges, replace=False))
-        cands = Candidates(cands.uv[:, keep], cands.rho[keep], cands.grad[:, keep],
-                           cands.mag[keep])
+        cands = cands.subset(keep)
         return keep[select(cands, config, T_prior=T_prior, intr=intr, width=width,
                            height=height, seed=seed, reobs_a=reobs_a)]
     if config.selection in ("all", "random") or n == 0:
@@ -379,18 +409,21 @@ def pack_edges(cands: Candidates, idx: np.ndarray, size: int) -> KeyframeEdges:
     grad = np.zeros((2, size), np.float32)
     valid = np.zeros(size, bool)
     mag = np.zeros(size, np.float32)
+    disc = np.zeros(size, np.float32)
     uv[:, :n] = cands.uv[:, idx]
     rho[:n] = cands.rho[idx]
     grad[:, :n] = cands.grad[:, idx]
     valid[:n] = True
     mag[:n] = cands.mag[idx]
-    return KeyframeEdges(uv=uv, rho=rho, grad=grad, valid=valid, mag=mag)
+    disc[:n] = cands.disc[idx]
+    return KeyframeEdges(uv=uv, rho=rho, grad=grad, valid=valid, mag=mag, disc=disc)
 
 
 def empty_edges(size: int) -> KeyframeEdges:
     """``size`` slots and no edge in them (numpy; for compiling a slot count ahead)."""
     none = Candidates(np.zeros((2, 0), np.float32), np.zeros(0, np.float32),
-                      np.zeros((2, 0), np.float32), np.zeros(0, np.float32))
+                      np.zeros((2, 0), np.float32), np.zeros(0, np.float32),
+                      np.zeros(0, np.float32))
     return pack_edges(none, np.zeros(0, np.int64), size)
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.custom_derivatives import SymbolicZero
 
 from ..hostmem import aligned_stack
 from .preprocess import EdgeMap
@@ -59,17 +60,46 @@ def bilinear_with_grad(
     return top + fv * (bottom - top), jnp.stack([du, bottom - top]), valid
 
 
-def _keys_weights(t: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+def _keys_weights(t: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
     """Catmull-Rom (Keys, a = -0.5) weights (4, K) of the samples at offsets -1, 0, 1, 2 for
-    fractional positions t (K,) in [0, 1], and their derivatives d/dt (4, K)."""
+    fractional positions t (K,) in [0, 1], and their first and second derivatives d/dt."""
     t2, t3 = t * t, t * t * t
     w = jnp.stack([(-t3 + 2.0 * t2 - t), (3.0 * t3 - 5.0 * t2 + 2.0),
                    (-3.0 * t3 + 4.0 * t2 + t), (t3 - t2)]) * 0.5
     dw = jnp.stack([(-3.0 * t2 + 4.0 * t - 1.0), (9.0 * t2 - 10.0 * t),
                     (-9.0 * t2 + 8.0 * t + 1.0), (3.0 * t2 - 2.0 * t)]) * 0.5
-    return w, dw
+    ddw = jnp.stack([(-6.0 * t + 4.0), (18.0 * t - 10.0), (-18.0 * t + 8.0), (6.0 * t - 2.0)]) * 0.5
+    return w, dw, ddw
 
 
+def _bicubic_parts(field: jnp.ndarray, uv: jnp.ndarray):
+    """Value (K,), gradient (2, K), Hessian (uu, uv, vv) (3, K) of the Catmull-Rom interpolant
+    at uv (2, K), and the inside-mask (K,)."""
+    h, w = field.shape
+    u, v = uv[0], uv[1]
+    valid = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
+    u0 = jnp.clip(jnp.floor(u), 0, w - 2)
+    v0 = jnp.clip(jnp.floor(v), 0, h - 2)
+    tu = jnp.where((u >= 0) & (u <= w - 1), u - u0, jnp.clip(u - u0, 0.0, 1.0))
+    tv = jnp.where((v >= 0) & (v <= h - 1), v - v0, jnp.clip(v - v0, 0.0, 1.0))
+    wu, dwu, ddwu = _keys_weights(tu)
+    wv, dwv, ddwv = _keys_weights(tv)
+    offsets = jnp.arange(-1, 3, dtype=jnp.int32)[:, None]
+    cols = jnp.clip(u0.astype(jnp.int32)[None] + offsets, 0, w - 1)  # (4, K)
+    rows = jnp.clip(v0.astype(jnp.int32)[None] + offsets, 0, h - 1)
+    patch = jnp.take(field.reshape(-1), rows[:, None, :] * w + cols[None, :, :],
+                     mode="clip")  # (4 rows, 4 cols, K)
+    along_u = jnp.einsum("jk,ijk->ik", wu, patch)  # each row interpolated at u (4, K)
+    d_along_u = jnp.einsum("jk,ijk->ik", dwu, patch)
+    dd_along_u = jnp.einsum("jk,ijk->ik", ddwu, patch)
+    value = jnp.sum(wv * along_u, axis=0)
+    grad = jnp.stack([jnp.sum(wv * d_along_u, axis=0), jnp.sum(dwv * along_u, axis=0)])
+    hess = jnp.stack([jnp.sum(wv * dd_along_u, axis=0), jnp.sum(dwv * d_along_u, axis=0),
+                      jnp.sum(ddwv * along_u, axis=0)])
+    return value, grad, hess, valid
+
+
+@jax.custom_jvp
 def bicubic_with_grad(
     field: jnp.ndarray, uv: jnp.ndarray
 ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
@@ -80,29 +110,31 @@ def bicubic_with_grad(
     repeat the border's). The interpolant passes through the pixel values, is C1 on
     [0, W-1] x [0, H-1] (its second derivative jumps at pixel boundaries), and reproduces
     polynomials of degree <= 2 in each of u, v exactly where the 4 x 4 pixels lie inside the
-    field (1 <= u <= W-2, 1 <= v <= H-2). The derivative is a polynomial in the point's
-    position within its pixel cell, so it is itself differentiable (second derivatives for
-    ``jax.jacfwd`` of a gradient)."""
-    h, w = field.shape
-    u, v = uv[0], uv[1]
-    valid = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
-    u0 = jnp.clip(jnp.floor(u), 0, w - 2)
-    v0 = jnp.clip(jnp.floor(v), 0, h - 2)
-    # inside, t = u - u0 unclipped: autodiff gets slope 1 at t = 0 and 1 too (clip's is 1/2)
-    tu = jnp.where((u >= 0) & (u <= w - 1), u - u0, jnp.clip(u - u0, 0.0, 1.0))
-    tv = jnp.where((v >= 0) & (v <= h - 1), v - v0, jnp.clip(v - v0, 0.0, 1.0))
-    wu, dwu = _keys_weights(tu)
-    wv, dwv = _keys_weights(tv)
-    offsets = jnp.arange(-1, 3, dtype=jnp.int32)[:, None]
-    cols = jnp.clip(u0.astype(jnp.int32)[None] + offsets, 0, w - 1)  # (4, K)
-    rows = jnp.clip(v0.astype(jnp.int32)[None] + offsets, 0, h - 1)
-    patch = jnp.take(field.reshape(-1), rows[:, None, :] * w + cols[None, :, :],
-                     mode="clip")  # (4 rows, 4 cols, K)
-    along_u = jnp.einsum("jk,ijk->ik", wu, patch)  # each row interpolated at u (4, K)
-    d_along_u = jnp.einsum("jk,ijk->ik", dwu, patch)
-    value = jnp.sum(wv * along_u, axis=0)
-    grad = jnp.stack([jnp.sum(wv * d_along_u, axis=0), jnp.sum(dwv * along_u, axis=0)])
+    field (1 <= u <= W-2, 1 <= v <= H-2). Differentiable to any order: the derivative
+    rule gives d value = grad . d uv and d grad = Hessian d uv from the interpolant's own
+    second derivatives (a few products per point, where differentiating the lookup itself
+    costs reverse mode a chain of gathers per point), plus the lookup of a field tangent."""
+    value, grad, _, valid = _bicubic_parts(field, uv)
     return value, grad, valid
+
+
+def _bicubic_jvp(primals, tangents):
+    field, uv = primals
+    d_field, d_uv = tangents
+    value, grad, hess, valid = _bicubic_parts(field, uv)
+    if isinstance(d_uv, SymbolicZero):
+        d_value, d_grad = jnp.zeros_like(value), jnp.zeros_like(grad)
+    else:
+        du, dv = d_uv[0], d_uv[1]
+        d_value = grad[0] * du + grad[1] * dv
+        d_grad = jnp.stack([hess[0] * du + hess[1] * dv, hess[1] * du + hess[2] * dv])
+    if not isinstance(d_field, SymbolicZero):
+        fv, fg, _, _ = _bicubic_parts(d_field, uv)
+        d_value, d_grad = d_value + fv, d_grad + fg
+    return (value, grad, valid), (d_value, d_grad, np.zeros(valid.shape, jax.dtypes.float0))
+
+
+bicubic_with_grad.defjvp(_bicubic_jvp, symbolic_zeros=True)
 
 
 def bicubic(field: jnp.ndarray, uv: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
@@ -146,11 +178,11 @@ def edge_direction_at(
     norm = jnp.sqrt(g[0] * g[0] + g[1] * g[1])
     target = uv0 - g * (d / jnp.maximum(norm, 1e-6))
     c = nearest(code[..., None], target)[0].astype(jnp.int32)
-    table = _direction_table(uv0.dtype)
+    table = direction_table(uv0.dtype)
     return jnp.take(table, c, axis=1), c > 0
 
 
-def _direction_table(dtype) -> jnp.ndarray:
+def direction_table(dtype) -> jnp.ndarray:
     """(2, 255) unit vectors of the direction codes (column 0, no edge, is zero)."""
     angle = np.arange(-1, 254) * (2.0 * np.pi / 254.0) - np.pi
     table = np.stack([np.cos(angle), np.sin(angle)])

@@ -1,6 +1,6 @@
 """Learning the tracker's weights by gradients: ``Params`` (the learnable numbers, apart
-from the static ``Config``), the differentiable alignment with its two adjoints, and pose
-losses against ground truth."""
+from the static ``Config``), the smooth training mode (``track_smooth``), the differentiable
+alignment with its two adjoints, and pose losses against ground truth."""
 
 from .differentiable import (
     ADJOINTS,
@@ -22,12 +22,14 @@ from .losses import (
     window_rpe_loss,
 )
 from .params import Params
+from .smooth import Smoothing, smooth_system, soft_consistency_dots, track_smooth
 
 __all__ = [
     "ADJOINTS",
     "CONSISTENCY",
     "INTERPOLATIONS",
     "Params",
+    "Smoothing",
     "ate_loss",
     "edge_magnitudes",
     "level_system",
@@ -37,7 +39,10 @@ __all__ = [
     "rigid_alignment",
     "rpe_loss",
     "selection_scores",
+    "smooth_system",
+    "soft_consistency_dots",
     "track_differentiable",
+    "track_smooth",
     "track_window",
     "window_rpe_loss",
 ]

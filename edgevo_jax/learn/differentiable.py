@@ -113,6 +113,7 @@ class _EdgeData(NamedTuple):
     pts_k: jnp.ndarray  # (3, K) keyframe points
     rho: jnp.ndarray  # (K,)
     mag: jnp.ndarray  # (K,) gradient magnitude (0 = unknown)
+    disc: jnp.ndarray  # (K,) depth discontinuity (``selection.depth_discontinuity``)
     field: jnp.ndarray  # (H_l, W_l) distance field of the level
     intr: Intrinsics  # level-0 intrinsics (arrays)
 
@@ -142,8 +143,8 @@ def _system(
     r, J, _, _, _ = _residuals(data.field, data.intr.at_level(level), T, data.pts_k,
                                spec.interpolation)
 
-    weight, slope = edge_weights(weighting_of(params, config), data.mag, data.rho, r,
-                                 config.max_residual[level], level)
+    weight, slope = edge_weights(weighting_of(params, config), data.mag, data.rho, data.disc,
+                                 r, config.max_residual[level], level)
     reject = None
     if spec.consistency == "soft":
         soft = jax.nn.sigmoid((dots - params.eta) / params.temperature)
@@ -278,7 +279,8 @@ def _check_options(adjoint: str, consistency: str, interpolation: str) -> None:
 
 
 def _data_at(level: int, kf: KeyframeEdges, dist, intr: Intrinsics, mag) -> _EdgeData:
-    return _EdgeData(unproject(intr, kf.uv, kf.rho), kf.rho, mag, dist[level], intr)
+    disc = jnp.zeros_like(kf.rho) if kf.disc is None else kf.disc
+    return _EdgeData(unproject(intr, kf.uv, kf.rho), kf.rho, mag, disc, dist[level], intr)
 
 
 def _as_arrays(kf: KeyframeEdges, dist, intr, mag):
@@ -421,21 +423,26 @@ def track_window(
     intr: Intrinsics,
     params: Params,
     config: Config,
+    *,
+    track=None,
     **options,
 ) -> TrackResult:
-    """``track_differentiable`` over a window of N frames in order against one keyframe, each
-    frame starting from the constant-velocity prediction of the two before it
-    (``chunk.predict_matrix``; A = T_(i-1)_kf, B = T_(i-2)_kf (4, 4) for the first frame): the scan
-    tracker's loop (``chunk.track_chunk``) with learnable params. dist holds one
-    (N, H / 2**l, W / 2**l) array per level, edge_map (N, H, W) arrays; ``options`` are
-    ``track_differentiable``'s keywords. Returns the N TrackResults stacked on a leading
-    axis. With the unrolled adjoint the gradient also flows through the predictions; with
-    the implicit one it does not (a converged pose does not depend on its start)."""
+    """``track`` (default ``track_differentiable``; or ``smooth.track_smooth``) over a window
+    of N frames in order against one keyframe, each frame starting from the constant-velocity
+    prediction of the two before it (``chunk.predict_matrix``; A = T_(i-1)_kf,
+    B = T_(i-2)_kf (4, 4) for the first frame): the scan tracker's loop
+    (``chunk.track_chunk``) with learnable params. dist holds one (N, H / 2**l, W / 2**l)
+    array per level, edge_map (N, H, W) arrays; ``options`` are ``track``'s keywords.
+    Returns the N TrackResults stacked on a leading axis. With the unrolled adjoint (and the
+    smooth mode) the gradient also flows through the predictions; with the implicit one it
+    does not (a converged pose does not depend on its start)."""
+
+    track = track_differentiable if track is None else track
 
     def step(carry, frame):
         a, b = carry
-        res = track_differentiable(kf, frame[0], frame[1], predict_matrix(a, b), intr, params,
-                                   config, **options)
+        res = track(kf, frame[0], frame[1], predict_matrix(a, b), intr, params, config,
+                    **options)
         return (res.T_c_k, a), res
 
     _, out = jax.lax.scan(step, (A, B), (tuple(dist), edge_map))

@@ -12,9 +12,15 @@ paper's ``a``) and the per-edge weighting model outputs exactly 1 for every edge
   place of the hard test; tau -> 0 gives the hard test back.
 - ``reobs_a``: the offset of the re-observation probability 1 / (1 + exp(a - m_e)). It only
   enters edge selection (``learn.selection_scores``), never the alignment.
-- ``weight_w`` (4,), ``weight_b``: a linear layer on the normalised edge features of
-  ``robust.weighting_features`` (gradient magnitude, depth, residual, level); each inlier's
-  Huber weight is scaled by 2 * sigmoid(w . f + b), in (0, 2), which is exactly 1 at w = 0, b = 0.
+- ``weight_w1`` (HIDDEN, 6), ``weight_b1`` (HIDDEN,), ``weight_w2`` (HIDDEN,), ``weight_b2``:
+  the per-edge weighting model (``robust.EdgeWeighting``), a one-hidden-layer network on the
+  normalised edge features of ``robust.weighting_features`` (gradient magnitude, depth, depth
+  discontinuity, residual, level, re-observation probability); each inlier's Huber weight is
+  scaled by 2 * sigmoid(w2 . tanh(w1 f + b1) + b2), in (0, 2). The defaults have w2 = 0 and
+  b2 = 0, so the scale is exactly 1 (the plain tracker), and w1 drawn once from a fixed seed
+  (``WEIGHTING_SEED``; with w2 = 0 the first layer has no gradient until w2 moves off zero).
+  The pose does not change under a scale common to all edges of a level, so only differences
+  between edges (and between residuals) are learnt.
 """
 
 from __future__ import annotations
@@ -26,12 +32,22 @@ import numpy as np
 
 from ..config import Config
 from ..derive import SolveKnobs, solve_knobs
-from ..frontend.robust import EdgeWeighting
+from ..frontend.robust import NUM_FEATURES, EdgeWeighting
 
 #: Default temperature of the soft gradient-consistency weight (see ``Params``): edges whose
 #: g(p) . g(p') lies more than ~0.1 from eta get a weight within 1e-4 of the hard test's.
 DEFAULT_TEMPERATURE = 0.01
-NUM_FEATURES = 4
+#: Hidden units of the weighting model, and the seed of its default first layer.
+HIDDEN = 8
+WEIGHTING_SEED = 0
+_WEIGHTING_FIELDS = ("weight_w1", "weight_b1", "weight_w2", "weight_b2")
+
+
+def _default_w1() -> np.ndarray:
+    """The default first layer (HIDDEN, NUM_FEATURES): N(0, 1 / NUM_FEATURES) entries from
+    ``WEIGHTING_SEED`` (the features are O(1), so the hidden units start in tanh's slope)."""
+    rng = np.random.default_rng(WEIGHTING_SEED)
+    return rng.normal(0.0, 1.0 / np.sqrt(NUM_FEATURES), (HIDDEN, NUM_FEATURES))
 
 
 class Params(NamedTuple):
@@ -41,8 +57,10 @@ class Params(NamedTuple):
     eta: jnp.ndarray
     log_temperature: jnp.ndarray
     reobs_a: jnp.ndarray
-    weight_w: jnp.ndarray
-    weight_b: jnp.ndarray
+    weight_w1: jnp.ndarray
+    weight_b1: jnp.ndarray
+    weight_w2: jnp.ndarray
+    weight_b2: jnp.ndarray
 
     @staticmethod
     def default(config: Config, dtype: jnp.dtype | None = None) -> Params:
@@ -54,9 +72,17 @@ class Params(NamedTuple):
             eta=jnp.asarray(config.eta, dtype),
             log_temperature=jnp.log(jnp.asarray(DEFAULT_TEMPERATURE, dtype)),
             reobs_a=jnp.asarray(config.canny_high, dtype),
-            weight_w=jnp.zeros(NUM_FEATURES, dtype),
-            weight_b=jnp.zeros((), dtype),
+            weight_w1=jnp.asarray(_default_w1(), dtype),
+            weight_b1=jnp.zeros(HIDDEN, dtype),
+            weight_w2=jnp.zeros(HIDDEN, dtype),
+            weight_b2=jnp.zeros((), dtype),
         )
+
+    @property
+    def weighting_is_identity(self) -> bool:
+        """Whether the weighting model scales every edge by exactly 1 (w2 = 0, b2 = 0; host
+        side, concrete values only)."""
+        return not (np.any(np.asarray(self.weight_w2) != 0) or np.asarray(self.weight_b2) != 0)
 
     def huber_delta(self, level: int) -> jnp.ndarray:
         """The Huber radius of ``level`` (pixels of that level)."""
@@ -77,8 +103,8 @@ def _level_features(config: Config) -> np.ndarray:
 def weighting_of(params: Params, config: Config) -> EdgeWeighting:
     """The weighting model of ``params`` as the solve takes it (``robust.EdgeWeighting``;
     arrays of params' dtype, traceable)."""
-    dtype = jnp.asarray(params.weight_w).dtype
-    return EdgeWeighting(jnp.asarray(params.weight_w), jnp.asarray(params.weight_b),
+    dtype = jnp.asarray(params.weight_w2).dtype
+    return EdgeWeighting(*(jnp.asarray(getattr(params, f)) for f in _WEIGHTING_FIELDS),
                          jnp.asarray(config.canny_high, dtype),
                          jnp.asarray(_level_features(config), dtype))
 
@@ -87,7 +113,7 @@ def solve_knobs_of(params: Params, config: Config) -> SolveKnobs:
     """The plain tracker's ``SolveKnobs`` with the numbers of ``params`` (host side, numpy
     float32, for ``odometry.Odometry(..., params=...)``): Huber radius exp(log_huber) per
     level, consistency threshold eta, and the weighting model when it is not the identity
-    (any of weight_w, weight_b nonzero; otherwise ``weighting`` stays None and the solve
+    (``Params.weighting_is_identity`` false; otherwise ``weighting`` stays None and the solve
     compiles to the program of ``derive.solve_knobs(config)``: ``Params.default(config)``
     gives the same numbers, hence the same trajectory). The plain tracker keeps the hard
     consistency test, so ``log_temperature`` does not enter; ``reobs_a`` enters the edge
@@ -96,11 +122,11 @@ def solve_knobs_of(params: Params, config: Config) -> SolveKnobs:
     if log_huber.shape != (config.num_levels,):
         raise ValueError(f"Params.log_huber has shape {log_huber.shape}, the config has "
                          f"{config.num_levels} pyramid levels")
-    w = np.asarray(params.weight_w, np.float32)
-    b = np.asarray(params.weight_b, np.float32)
     weighting = None
-    if np.any(w != 0) or b != 0:
-        weighting = EdgeWeighting(w, b, np.float32(config.canny_high),
+    if not params.weighting_is_identity:
+        weighting = EdgeWeighting(*(np.asarray(getattr(params, f), np.float32)
+                                    for f in _WEIGHTING_FIELDS),
+                                  np.float32(config.canny_high),
                                   _level_features(config).astype(np.float32))
     return solve_knobs(config, huber_delta=np.exp(log_huber), eta=np.asarray(params.eta),
                        weighting=weighting)
@@ -114,7 +140,12 @@ def params_to_dict(params: Params) -> dict[str, float | list[float]]:
 
 def params_from_dict(values: dict, config: Config) -> Params:
     """Params from ``params_to_dict``'s numbers (other keys are ignored; missing fields take
-    ``Params.default(config)``'s values). ValueError for a field of the wrong shape."""
+    ``Params.default(config)``'s values). ValueError for a field of the wrong shape, and for
+    the linear weighting model of earlier versions (``weight_w``, ``weight_b``)."""
+    if "weight_w" in values or "weight_b" in values:
+        raise ValueError("these Params hold the earlier linear weighting model (weight_w, "
+                         "weight_b); this version's model is weight_w1, weight_b1, weight_w2, "
+                         "weight_b2: fit again with scripts/learn_weights.py")
     default = Params.default(config)
     fields = {}
     for name, d in zip(Params._fields, default, strict=True):

@@ -98,7 +98,9 @@ def test_bicubic_is_exact_on_biquadratic_fields(coef, seed):
 
 def test_bicubic_derivative_equals_autodiff_and_finite_differences():
     """On a rough field, near and at the borders too; the derivative is continuous across
-    pixel boundaries (C1), unlike the bilinear one."""
+    pixel boundaries (C1), unlike the bilinear one. The derivative rule (custom JVP): the
+    value's derivative is the returned gradient, the gradient's is the interpolant's Hessian
+    (against central differences of the gradient), and a field tangent is looked up."""
     with jax.enable_x64(True):
         rng = np.random.default_rng(3)
         field = smooth_field(rng)
@@ -110,6 +112,21 @@ def test_bicubic_derivative_equals_autodiff_and_finite_differences():
         auto = jax.jit(jax.vmap(jax.grad(lambda p: bicubic(field, p[:, None])[0][0]),
                                 in_axes=1, out_axes=1))(uv)
         np.testing.assert_allclose(g, auto, rtol=1e-12, atol=1e-12)
+        grad_of = jax.jit(lambda f, p: bicubic_with_grad(f, p)[1])
+        for k in range(2):
+            d = jnp.zeros((2, uv.shape[1])).at[k].set(1.0)
+            _, hess_k = jax.jvp(lambda p: grad_of(field, p), (uv,), (d,))
+            fd = (grad_of(field, uv + 1e-6 * d) - grad_of(field, uv - 1e-6 * d)) / 2e-6
+            inner = ((uv[0] > 1e-3) & (uv[0] < W - 1 - 1e-3) & (uv[1] > 1e-3)
+                     & (uv[1] < H - 1 - 1e-3))
+            np.testing.assert_allclose(np.asarray(hess_k)[:, inner], np.asarray(fd)[:, inner],
+                                       rtol=1e-5, atol=1e-6)
+        d_field = jnp.asarray(rng.normal(size=field.shape))
+        (_, _, _), (dv, dg, _) = jax.jvp(bicubic_with_grad, (field, uv),
+                                         (d_field, jnp.zeros_like(uv)))
+        v_lin, g_lin, _ = bicubic_with_grad(d_field, uv)
+        np.testing.assert_allclose(dv, v_lin, atol=1e-12)
+        np.testing.assert_allclose(dg, g_lin, atol=1e-12)
         interior = (uv[0] > 1e-3) & (uv[0] < W - 1 - 1e-3) & (uv[1] > 1e-3) & (uv[1] < H - 1 - 1e-3)
         eps = 1e-6
         for k in range(2):

@@ -41,8 +41,20 @@ from edgevo_jax.learn.params import Params, flatten, unflatten
 from edgevo_jax.metrics import ate
 
 CONFIG = Config(num_edges=128)
-NAMES = ["log_huber0", "log_huber1", "log_huber2", "eta", "log_temperature", "reobs_a",
-         "w_mag", "w_depth", "w_residual", "w_level", "b"]
+
+def _flat_names(params: Params) -> list[str]:
+    """A name per entry of ``flatten(params)``: the field, with its index when not a scalar."""
+    names = []
+    for field, x in zip(Params._fields, params, strict=True):
+        shape = np.shape(x)
+        names += [field] if shape == () else [
+            field + "".join(str(i) for i in idx) for idx in np.ndindex(shape)]
+    return names
+
+
+NAMES = _flat_names(Params.default(CONFIG))
+assert NAMES[:6] == ["log_huber0", "log_huber1", "log_huber2", "eta", "log_temperature",
+                     "reobs_a"]
 _diff = jax.jit(track_differentiable,
                 static_argnames=("config", "adjoint", "consistency", "checkpoint"))
 
@@ -64,7 +76,8 @@ def problem(clip, k, dtype):
     """(kf, dist, edge_map, mag, T_gt) of pair (0, k) as device arrays of ``dtype``."""
     _, edges, mag, frames, T_gt = clip
     kf = KeyframeEdges(jnp.asarray(edges.uv, dtype), jnp.asarray(edges.rho, dtype),
-                       jnp.asarray(edges.grad, dtype), jnp.asarray(edges.valid))
+                       jnp.asarray(edges.grad, dtype), jnp.asarray(edges.valid),
+                       disc=jnp.asarray(edges.disc, dtype))
     f = frames[k]
     dist = tuple(jnp.asarray(d, dtype) for d in f.dist)
     return kf, dist, jax.tree.map(jnp.asarray, f.edge_map), jnp.asarray(mag, dtype), jnp.asarray(
@@ -74,7 +87,8 @@ def problem(clip, k, dtype):
 def trained_like(config: Config, **changes) -> Params:
     """Non-default params: every weighting-model input matters (residual slope included)."""
     p = Params.default(config)._replace(
-        weight_w=jnp.array([0.1, -0.2, 0.3, 0.05]), weight_b=jnp.asarray(0.1),
+        weight_w2=jnp.array([0.1, -0.2, 0.3, 0.05, -0.1, 0.2, 0.1, -0.3]),
+        weight_b2=jnp.asarray(0.1),
         log_huber=jnp.log(jnp.array([1.2, 0.9, 1.1])))
     return p._replace(**{k: jnp.asarray(v) for k, v in changes.items()})
 
@@ -133,16 +147,18 @@ def test_unrolled_gradients_equal_finite_differences(clip):
         fd = central_differences(loss, v, 1e-6)
     grad = np.asarray(grad)
     assert NAMES[5] == "reobs_a" and grad[5] == 0.0 and fd[5] == 0.0  # selection-only
+    scale = np.max(np.abs(fd))  # some first-layer weights move the loss by ~1e-6 of it
     for name, g, f in zip(NAMES, grad, fd, strict=True):
         if name != "reobs_a":
-            assert abs(g - f) <= 1e-4 * abs(f) and f != 0.0, (name, g, f)
+            assert abs(g - f) <= 1e-4 * abs(f) + 1e-7 * scale and f != 0.0, (name, g, f)
 
 
 #: level 0 converged: 20 LM tries per round, 3 refinement rounds, no early stop
 CONVERGED = CONFIG.replace(iterations=(20, 5, 5), step_tol=0.0, max_rejects=1000)
-#: parameters that do not enter level 0: the coarse levels' Huber radii, the weight of the
-#: level feature (0 at level 0) and reobs_a (selection only)
-NOT_AT_LEVEL0 = ("log_huber1", "log_huber2", "w_level", "reobs_a")
+#: parameters that do not enter level 0: the coarse levels' Huber radii, the first layer's
+#: weights of the level feature (0 at level 0) and reobs_a (selection only)
+NOT_AT_LEVEL0 = ("log_huber1", "log_huber2", "reobs_a",
+                 *(f"weight_w1{h}4" for h in range(Params.default(CONFIG).weight_w1.shape[0])))
 
 
 @pytest.mark.slow
@@ -179,6 +195,7 @@ def test_implicit_gradients_are_exact_at_a_converged_pose(clip):
         g_unrolled = np.asarray(jax.jit(jax.grad(lambda v: pose_loss(pose(v, "unrolled"),
                                                                      T_gt)))(v))
         eps = 1e-4
+        scale = np.max(np.abs(g_implicit))
         for i, name in enumerate(NAMES):
             e = np.zeros(v.size)
             e[i] = eps
@@ -191,8 +208,8 @@ def test_implicit_gradients_are_exact_at_a_converged_pose(clip):
             if name in NOT_AT_LEVEL0:
                 assert g == 0.0 and abs(fd) < 1e-12, (name, g, fd)
             else:
-                assert abs(g - fd) <= 1e-4 * abs(fd) and abs(fd) > 1e-8, (name, g, fd)
-        np.testing.assert_allclose(g_unrolled, g_implicit, rtol=1e-6, atol=1e-18)
+                assert abs(g - fd) <= 1e-4 * abs(fd) + 1e-7 * scale and fd != 0.0, (name, g, fd)
+        np.testing.assert_allclose(g_unrolled, g_implicit, rtol=1e-6, atol=1e-10 * scale)
 
 
 def test_checkpointed_unrolled_gradients_are_the_same(clip):
