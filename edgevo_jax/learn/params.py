@@ -8,8 +8,9 @@ paper's ``a``) and the per-edge weighting model outputs exactly 1 for every edge
   a log value keeps the radius positive under gradient steps.
 - ``eta``: the gradient-consistency margin (g(p) . g(p') >= eta, paper: 0.6).
 - ``log_temperature``: log of the temperature tau of the soft consistency weight
-  sigmoid((g(p) . g(p') - eta) / tau) used by the differentiable path (``learn.differentiable``) in
-  place of the hard test; tau -> 0 gives the hard test back.
+  sigmoid((g(p) . g(p') - eta) / tau) used by ``learn.differentiable``'s soft mode in place
+  of the hard test; tau -> 0 gives the hard test back. The smooth training mode
+  (``learn.smooth``) takes its temperatures from ``Smoothing`` instead, not learnt.
 - ``reobs_a``: the offset of the re-observation probability 1 / (1 + exp(a - m_e)). It only
   enters edge selection (``learn.selection_scores``), never the alignment.
 - ``weight_w1`` (HIDDEN, 6), ``weight_b1`` (HIDDEN,), ``weight_w2`` (HIDDEN,), ``weight_b2``:
