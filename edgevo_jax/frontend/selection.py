@@ -94,18 +94,20 @@ def depth_discontinuity(depth: np.ndarray | None, uv: np.ndarray, z: np.ndarray)
     """(max - min) / z of the valid depths (m) in the ``DISCONTINUITY_WINDOW`` square around
     each edge pixel uv (2, N) of depth z (N,) m: ~0.01-0.05 on a smooth surface, ~0.1-1 where
     the edge lies on an occluding contour (its depth may be the background's or the
-    foreground's). Missing depth (0 or NaN) is left out; zeros (N,) without a depth image."""
+    foreground's), at most 1000. Missing depth (0, negative or not finite) is left out; zeros
+    (N,) without a depth image."""
     if depth is None or uv.shape[1] == 0:
         return np.zeros(uv.shape[1], np.float32)
-    d = np.nan_to_num(np.asarray(depth, np.float32), nan=0.0)
+    d = np.asarray(depth, np.float32)
+    d = np.where(np.isfinite(d) & (d > 0), d, np.float32(0.0))
     kernel = np.ones((DISCONTINUITY_WINDOW, DISCONTINUITY_WINDOW), np.uint8)
     high = cv2.dilate(d, kernel)
     low = cv2.erode(np.where(d > 0, d, np.float32(np.inf)), kernel)
     h, w = d.shape
     u = np.clip(np.rint(uv[0]).astype(int), 0, w - 1)
     v = np.clip(np.rint(uv[1]).astype(int), 0, h - 1)
-    spread = np.maximum(high[v, u] - np.minimum(low[v, u], z), 0.0)
-    return (spread / z).astype(np.float32)
+    spread = np.maximum(high[v, u] - np.minimum(low[v, u], z), 0.0).astype(np.float64)
+    return np.minimum(spread / np.asarray(z, np.float64), 1e3).astype(np.float32)
 
 
 def candidates(frame: Frame, config: Config) -> Candidates:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -17,6 +18,7 @@ from edgevo_jax.datasets import load_sequence
 from edgevo_jax.frontend.selection import (
     _add_edge,
     candidates,
+    depth_discontinuity,
     logdet_gains,
     partition_greedy,
     partition_ids,
@@ -179,3 +181,22 @@ def test_spg_spreads_wider_than_plain_greedy(real_candidates):
         cell_id, _ = partition_ids(uv, w, h, 32)
         coverage[mode] = len(set(cell_id.tolist()))
     assert coverage["spg"] > coverage["greedy"]
+
+
+def test_depth_discontinuity_measures_depth_steps_and_skips_missing_depth():
+    """(max - min) / z over the 5 x 5 window: 0 on a flat surface, the step's size over the
+    edge's depth at a step, missing depth (0, negative, NaN, inf) left out, huge values
+    clamped to 1000, no warnings; zeros without a depth image."""
+    d = np.full((20, 20), 1.0, np.float32)
+    d[:, 10:] = 2.0
+    d[0, 0], d[1, 1], d[2, 2], d[15, 2] = np.inf, np.nan, -1.0, 0.0
+    d[18, 18] = 3e38
+    uv = np.array([[4.0, 9.0, 10.0, 15.0, 1.0, 2.0, 17.0],
+                   [5.0, 5.0, 5.0, 5.0, 1.0, 15.0, 17.0]])
+    z = np.array([1.0, 1.0, 2.0, 2.0, 1.0, 1.0, 2.0], np.float32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = depth_discontinuity(d, uv, z)
+    np.testing.assert_allclose(out, [0.0, 1.0, 0.5, 0.0, 0.0, 0.0, 1000.0], atol=1e-6)
+    assert out.dtype == np.float32
+    np.testing.assert_array_equal(depth_discontinuity(None, uv, z), np.zeros(7, np.float32))
