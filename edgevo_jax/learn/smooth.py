@@ -11,7 +11,8 @@ under a small change of the parameters replaced by a smooth one:
 - the residual gate r <= gate becomes sigmoid((gate - r) / (tau_gate * gate));
 - the consistency test g(p) . g(p') >= eta becomes sigmoid((g(p) . g(p') - eta) / tau_c),
   and p' (the nearest frame edge, a nearest-pixel lookup of the direction map in the tracker)
-  mixes the 2 x 2 pixels around the step target with weights softmax(-|p' - c|^2 / tau_px);
+  mixes the 2 x 2 pixels around the step target with weights softmax(-|p' - c|^2 / tau_px)
+  (a jump of relative size ~exp(-1 / tau_px) remains where p' crosses a pixel boundary);
 - the distance fields are read with a C1 interpolant (``interp.bicubic_with_grad``; the
   tracker's bilinear interpolant has kinks at pixel boundaries).
 
@@ -95,7 +96,10 @@ def soft_consistency_dots(grad_k: jnp.ndarray, code: jnp.ndarray, uv0: jnp.ndarr
     (``interp.edge_direction_at``: one step p' = uv0 - d g / |g| on the distance field, then
     the direction map at p'), but the map read softly: the 2 x 2 pixels around p' weighted
     by softmax(-|p' - c|^2 / tau) (tau px^2; tau -> 0 is the nearest pixel); a pixel with no
-    edge direction counts -1, as the tracker's "none found". Smooth in uv0, d and g."""
+    edge direction counts -1, as the tracker's "none found". Smooth in uv0, d and g except
+    where p' crosses a pixel boundary and the 2 x 2 pixels change: there the pixel left
+    behind had weight ~exp(-1 / tau) of the nearest (2 % at the default 0.25), a jump of that
+    size."""
     h, w = code.shape
     norm = jnp.sqrt(g[0] * g[0] + g[1] * g[1] + 1e-12)
     target = uv0 - g * (d / jnp.maximum(norm, 1e-6))
