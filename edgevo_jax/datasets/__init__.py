@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
+from .groundtruth import groundtruth_pose_at
 from .pingpong import pingpong, pingpong_indices
 from .tum import (
     FREIBURG_CAMERAS,
     FROM_NAME,
     TumSequence,
     camera_from_name,
-    groundtruth_pose_at,
     load_sequence,
     read_file_list,
     subsequence,

@@ -29,7 +29,6 @@ import math
 from functools import partial
 from typing import NamedTuple
 
-import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -66,18 +65,16 @@ class KeyframeEdges(NamedTuple):
 
 class Candidates(NamedTuple):
     """Culled edges of one keyframe (numpy, struct of arrays): uv (2, N), rho (N,),
-    grad (2, N), mag (N,), disc (N,) (``depth_discontinuity``)."""
+    grad (2, N), mag (N,)."""
 
     uv: np.ndarray
     rho: np.ndarray
     grad: np.ndarray
     mag: np.ndarray
-    disc: np.ndarray
 
     def subset(self, idx: np.ndarray) -> Candidates:
         """The candidates ``idx``."""
-        return Candidates(self.uv[:, idx], self.rho[idx], self.grad[:, idx], self.mag[idx],
-                          self.disc[idx])
+        return Candidates(self.uv[:, idx], self.rho[idx], self.grad[:, idx], self.mag[idx])
 
 
 def cull(frame: Frame, config: Config) -> np.ndarray:
@@ -99,23 +96,27 @@ def depth_discontinuity(depth: np.ndarray | None, uv: np.ndarray, z: np.ndarray)
     if depth is None or uv.shape[1] == 0:
         return np.zeros(uv.shape[1], np.float32)
     d = np.asarray(depth, np.float32)
-    d = np.where(np.isfinite(d) & (d > 0), d, np.float32(0.0))
-    kernel = np.ones((DISCONTINUITY_WINDOW, DISCONTINUITY_WINDOW), np.uint8)
-    high = cv2.dilate(d, kernel)
-    low = cv2.erode(np.where(d > 0, d, np.float32(np.inf)), kernel)
     h, w = d.shape
-    u = np.clip(np.rint(uv[0]).astype(int), 0, w - 1)
-    v = np.clip(np.rint(uv[1]).astype(int), 0, h - 1)
-    spread = np.maximum(high[v, u] - np.minimum(low[v, u], z), 0.0).astype(np.float64)
+    r = DISCONTINUITY_WINDOW // 2
+    steps = np.arange(-r, r + 1)
+    du, dv = np.tile(steps, steps.size)[:, None], np.repeat(steps, steps.size)[:, None]
+    u = np.clip(np.rint(uv[0]).astype(int)[None, :] + du, 0, w - 1)
+    v = np.clip(np.rint(uv[1]).astype(int)[None, :] + dv, 0, h - 1)
+    window = d[v, u]  # (window pixels, N): only the edges asked about, not the whole image
+    ok = np.isfinite(window) & (window > 0)
+    high = np.max(np.where(ok, window, 0.0), axis=0)
+    low = np.min(np.where(ok, window, np.inf), axis=0)
+    spread = np.maximum(high - np.minimum(low, z), 0.0).astype(np.float64)
     return np.minimum(spread / np.asarray(z, np.float64), 1e3).astype(np.float32)
 
 
 def candidates(frame: Frame, config: Config) -> Candidates:
     """The culled edges of a frame."""
     idx = cull(frame, config)
-    uv, z = frame.edge_uv[idx].T.copy(), frame.edge_depth[idx]
-    return Candidates(uv=uv, rho=1.0 / z, grad=frame.edge_grad[idx].T.copy(),
-                      mag=frame.edge_mag[idx], disc=depth_discontinuity(frame.depth, uv, z))
+    return Candidates(
+        uv=frame.edge_uv[idx].T.copy(), rho=1.0 / frame.edge_depth[idx],
+        grad=frame.edge_grad[idx].T.copy(), mag=frame.edge_mag[idx],
+    )
 
 
 def reobservation_probability(mag: jnp.ndarray, a: float) -> jnp.ndarray:
@@ -403,29 +404,31 @@ def warm_up(config: Config, *, intr: Intrinsics, width: int, height: int,
             width=width, height=height, reobs_a=reobs_a))
 
 
-def pack_edges(cands: Candidates, idx: np.ndarray, size: int) -> KeyframeEdges:
-    """Edges ``idx`` of ``cands`` in ``size`` slots (numpy), padding with valid=False."""
+def pack_edges(cands: Candidates, idx: np.ndarray, size: int,
+               disc: np.ndarray | None = None) -> KeyframeEdges:
+    """Edges ``idx`` of ``cands`` in ``size`` slots (numpy), padding with valid=False, with
+    their depth discontinuities ``disc`` (idx.size,) (zeros when None)."""
     n = idx.size
     uv = np.zeros((2, size), np.float32)
     rho = np.ones(size, np.float32)
     grad = np.zeros((2, size), np.float32)
     valid = np.zeros(size, bool)
     mag = np.zeros(size, np.float32)
-    disc = np.zeros(size, np.float32)
+    disc_slots = np.zeros(size, np.float32)
     uv[:, :n] = cands.uv[:, idx]
     rho[:n] = cands.rho[idx]
     grad[:, :n] = cands.grad[:, idx]
     valid[:n] = True
     mag[:n] = cands.mag[idx]
-    disc[:n] = cands.disc[idx]
-    return KeyframeEdges(uv=uv, rho=rho, grad=grad, valid=valid, mag=mag, disc=disc)
+    if disc is not None:
+        disc_slots[:n] = disc
+    return KeyframeEdges(uv=uv, rho=rho, grad=grad, valid=valid, mag=mag, disc=disc_slots)
 
 
 def empty_edges(size: int) -> KeyframeEdges:
     """``size`` slots and no edge in them (numpy; for compiling a slot count ahead)."""
     none = Candidates(np.zeros((2, 0), np.float32), np.zeros(0, np.float32),
-                      np.zeros((2, 0), np.float32), np.zeros(0, np.float32),
-                      np.zeros(0, np.float32))
+                      np.zeros((2, 0), np.float32), np.zeros(0, np.float32))
     return pack_edges(none, np.zeros(0, np.int64), size)
 
 
@@ -451,4 +454,6 @@ def keyframe_edges(
                  reobs_a=reobs_a)
     slots = _bucket(idx.size, config.max_edges) if config.selection == "all" \
         else config.edge_slots
-    return pack_edges(cands, idx, slots)
+    # only the selected edges' discontinuity (a window each), from their own depths
+    z = frame.edge_depth[cull(frame, config)[idx]]
+    return pack_edges(cands, idx, slots, depth_discontinuity(frame.depth, cands.uv[:, idx], z))

@@ -26,8 +26,8 @@ import numpy as np
 from tqdm import tqdm
 
 from ..config import Config
+from ..datasets.groundtruth import groundtruth_pose_at
 from ..datasets.source import Source
-from ..datasets.tum import groundtruth_pose_at
 from ..frontend.align import TrackResult
 from ..frontend.chunk import track_chunk_jit
 from ..hostmem import aligned_stack, to_host

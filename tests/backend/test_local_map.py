@@ -11,7 +11,7 @@ from edgevo_jax import Config
 from edgevo_jax.backend.local_map import LocalMap, depth_continuous
 from edgevo_jax.cli import BUNDLED_CLIP
 from edgevo_jax.datasets import load_sequence
-from edgevo_jax.datasets.tum import groundtruth_pose_at
+from edgevo_jax.datasets.groundtruth import groundtruth_pose_at
 from edgevo_jax.frontend.selection import keyframe_edges
 from edgevo_jax.image.preprocess import preprocess
 from edgevo_jax.io import poses7_to_matrices
