@@ -4,6 +4,7 @@ Usage::
 
     python scripts/robustness_bench.py [SEQ_DIR ...] [--steps 1,2,3,5] [--seeds 0-4]
                                        [--peers cv2_rgb,cv2_rgbd] [--max-frames N]
+                                       [--set KEY=VALUE ...]
                                        [--out-json docs/robustness/robustness.json]
                                        [--out-md docs/robustness/robustness.md]
                                        [--out-png docs/robustness/robustness.png]
@@ -14,10 +15,10 @@ of rgb.txt and of depth.txt, then associated (``load_sequence(..., frame_step=k)
 lists have gaps, pairs drop out and the motion between tracked frames spans more than k
 frames; ``--max-frames`` keeps the frames up to the full sequence's frame N) and tracked
 
-- by edgevo_jax in this process (``run_sequence``, the default ``Config`` but for the
-  selection seed: one run per ``--seeds`` seed; the first run of the process is preceded by
-  an untimed warm-up run on ``--warmup-frames`` frames, so that every timed run finds the
-  tracker's and the window's programs compiled), and
+- by edgevo_jax in this process (``run_sequence``, the default ``Config`` with the
+  ``--set`` overrides but for the selection seed: one run per ``--seeds`` seed; the first
+  run of the process is preceded by an untimed warm-up run on ``--warmup-frames`` frames,
+  so that every timed run finds the tracker's and the window's programs compiled), and
 - by each ``--peers`` method of ``scripts/bench.py`` (its ``make_peer`` and ``track_peer``:
   frame to frame from edgevo's first pose; deterministic, so one run per k).
 
@@ -302,13 +303,15 @@ def run_peer(method: str, seq: TumSequence) -> dict[str, Any]:
     return out
 
 
-def run_edgevo(seq: TumSequence, seed: int) -> dict[str, Any]:
-    """Track ``seq`` with edgevo_jax, ``Config(seed=seed)``; the scored run plus keyframes."""
+def run_edgevo(seq: TumSequence, seed: int, base: Config | None = None) -> dict[str, Any]:
+    """Track ``seq`` with edgevo_jax, ``base`` (default ``Config()``) with the selection
+    seed ``seed``; the scored run plus keyframes."""
     from edgevo_jax.pipeline.run import run_sequence
 
+    config = (base or Config()).replace(seed=seed)
     with warnings.catch_warnings():  # a depthless frame is a WEAK frame, not a failure
         warnings.simplefilter("ignore", EmptyDepthWarning)
-        run = run_sequence(seq, Config(seed=seed), progress=False)
+        run = run_sequence(seq, config, progress=False)
     states = [r.state for r in run.results]
     out = score_run(run.timestamps, run.poses, states, run.frame_ms, seq.groundtruth,
                     groundtruth_at(seq, run.timestamps))
@@ -316,7 +319,7 @@ def run_edgevo(seq: TumSequence, seed: int) -> dict[str, Any]:
     return out
 
 
-def warm_up(seq: TumSequence, frames: int) -> None:
+def warm_up(seq: TumSequence, frames: int, base: Config | None = None) -> None:
     """An untimed edgevo run on the first ``frames`` frames, so that the timed runs find the
     programs compiled (the window's compile when it first fills and marginalises)."""
     from edgevo_jax.pipeline.run import run_sequence
@@ -324,7 +327,7 @@ def warm_up(seq: TumSequence, frames: int) -> None:
     if frames > 0:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", EmptyDepthWarning)
-            run_sequence(seq, Config(), progress=False, max_frames=frames)
+            run_sequence(seq, base or Config(), progress=False, max_frames=frames)
 
 
 def _progress(run: dict[str, Any]) -> str:
@@ -375,8 +378,8 @@ def plot(rows: Sequence[dict[str, Any]], path: Path) -> Path | None:
 
 
 def run_all(seq_dirs: Sequence[Path], steps: Sequence[int], seeds: Sequence[int],
-            peers: Sequence[str], max_frames: int | None, warmup_frames: int
-            ) -> list[dict[str, Any]]:
+            peers: Sequence[str], max_frames: int | None, warmup_frames: int,
+            config: Config | None = None) -> list[dict[str, Any]]:
     """Every run, in order: per sequence and step, edgevo per seed, then each peer. Prints a
     progress line per run."""
     runs: list[dict[str, Any]] = []
@@ -386,7 +389,7 @@ def run_all(seq_dirs: Sequence[Path], steps: Sequence[int], seeds: Sequence[int]
         if max_frames is not None:
             full = subsequence(full, 0, max_frames)
         if not warmed:
-            warm_up(full, warmup_frames)
+            warm_up(full, warmup_frames, config)
             warmed = True
         for k in steps:
             seq = load_sequence(seq_dir, frame_step=k)
@@ -398,7 +401,8 @@ def run_all(seq_dirs: Sequence[Path], steps: Sequence[int], seeds: Sequence[int]
             jobs += [(p, None) for p in peers]
             for method, seed in jobs:
                 row = {**base, "method": method, "seed": seed}
-                row.update(run_edgevo(seq, seed) if seed is not None else run_peer(method, seq))
+                row.update(run_edgevo(seq, seed, config) if seed is not None
+                           else run_peer(method, seq))
                 print(_progress(row), flush=True)
                 runs.append(row)
     return runs
@@ -412,6 +416,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--seeds", default="0-4", help="edgevo selection seeds (0-4 or 0,1,2)")
     p.add_argument("--peers", default=",".join(DEFAULT_PEERS),
                    help=f"bench.py peers, comma-separated, '' for none ({', '.join(bench.PEERS)})")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a Config field of edgevo's runs (repeatable)")
     p.add_argument("--max-frames", type=int, default=None,
                    help="cut each sequence to its first N frames before the sweep")
     p.add_argument("--warmup-frames", type=int, default=40,
@@ -433,7 +439,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     seeds = parse_int_list(args.seeds)
     peers = [p.strip() for p in args.peers.split(",") if p.strip()]
     seq_dirs = args.sequences or [DEFAULT_SEQUENCE]
-    runs = run_all(seq_dirs, steps, seeds, peers, args.max_frames, args.warmup_frames)
+    base = Config().with_overrides(args.set)
+    runs = run_all(seq_dirs, steps, seeds, peers, args.max_frames, args.warmup_frames, base)
     rows = aggregate(runs)
     table = markdown_table(rows)
     command = shlex.join(["python", os.path.relpath(__file__), *argv])

@@ -69,6 +69,11 @@ class BagSequence:
     def __len__(self) -> int:
         return len(self.timestamps)
 
+    @property
+    def depth_timestamps(self) -> np.ndarray:
+        """(N,) header stamps (s) of the frames' depth images."""
+        return self.headers[:, 1].copy()
+
     def _open(self) -> Any:
         if not self._reader:
             highlevel, typesys = _rosbags()

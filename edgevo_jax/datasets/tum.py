@@ -275,8 +275,9 @@ def empty_depth_note(raw: np.ndarray, path: str | os.PathLike[str]) -> str | Non
 class TumSequence:
     """An associated TUM RGB-D sequence (use :func:`load_sequence`).
 
-    ``timestamps`` are the rgb timestamps of the associated rgb/depth pairs; ``groundtruth``
-    is (timestamps, poses7) or None. Equality is identity (fields hold arrays).
+    ``timestamps`` are the rgb timestamps of the associated rgb/depth pairs,
+    ``depth_timestamps`` their depth images'; ``groundtruth`` is (timestamps, poses7) or
+    None. Equality is identity (fields hold arrays).
     """
 
     root: Path
@@ -290,6 +291,7 @@ class TumSequence:
     groundtruth: tuple[np.ndarray, np.ndarray] | None
     width: int
     height: int
+    depth_timestamps: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.rgb_files)
@@ -359,7 +361,8 @@ def subsequence(seq: TumSequence, start: int, stop: int, *, step: int = 1) -> Tu
     name = f"{seq.name}_frames{start}-{stop}" + (f"_every{step}" if step > 1 else "")
     return dataclasses.replace(
         seq, name=name, timestamps=seq.timestamps[part],
-        rgb_files=seq.rgb_files[part], depth_files=seq.depth_files[part])
+        rgb_files=seq.rgb_files[part], depth_files=seq.depth_files[part],
+        depth_timestamps=None if seq.depth_timestamps is None else seq.depth_timestamps[part])
 
 
 def load_sequence(
@@ -462,6 +465,7 @@ def load_sequence(
         groundtruth=groundtruth,
         width=int(first.shape[1]),
         height=int(first.shape[0]),
+        depth_timestamps=depth_t[pairs[:, 1]],
     )
     if intrinsics is not None or (root / CALIBRATION).is_file():  # the Freiburg table: 640x480
         intr.validate(width=seq.width, height=seq.height)

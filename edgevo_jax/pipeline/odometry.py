@@ -32,7 +32,7 @@ from ..programs import program
 from . import recovery
 from .mapping import Mapped, Mapper
 from .recovery import inlier_share
-from .results import LOST, OK, WEAK, FrameResult
+from .results import LOST, OK, WEAK, FrameResult, Refinement
 
 _track_jit = program(track, static_argnames="config")
 
@@ -101,6 +101,7 @@ class Odometry:
         self.num_keyframes = 0
         self._mapper: Mapper | None = None  # made with the first keyframe (image size)
         self._index = 0  # frames concluded so far (the mapping lag counts in them)
+        self.refinements: list[Refinement] = []  # the window's keyframe poses, as taken
         self._map_ms = 0.0  # the tracker's time on the local map in the current frame
         self._intrinsics_moved = False  # the window's intrinsics were taken in this frame
         self.warm_up_ms: float | None = None  # time of ``_warm_up`` (at the first keyframe)
@@ -307,8 +308,9 @@ class Odometry:
                      else self._relative_from_world())
         cov = np.asarray(res.covariance, np.float64) if lost is None else None
         state = LOST if lost else (WEAK if weak else OK)
+        share = None if lost else inlier_share(res)
         return self._result(pending, pose, state, lost or weak, inliers, cov,
-                            reason if made_kf else None, used, made_kf, t_solve), plain
+                            reason if made_kf else None, used, made_kf, t_solve, share), plain
 
     def _warm_up(self, frame: Frame) -> None:
         """At the first keyframe, before any frame is tracked: compile or load, and run once,
@@ -360,6 +362,7 @@ class Odometry:
 
     def _apply_mapped(self, m: Mapped) -> None:
         kf: _Keyframe = m.key
+        self.refinements.append(Refinement(kf.timestamp, self._index - 1, kf.pose, m.pose))
         if kf is self._kf:
             correction = m.pose @ inverse_np(kf.pose)
             self._poses = [correction @ p for p in self._poses]
@@ -484,7 +487,7 @@ class Odometry:
         return pose, (t1 - t0) * 1e3
 
     def _result(self, pending, pose, state, reason, inliers, cov, kf, used, made_kf,
-                t_solve) -> FrameResult:
+                t_solve, share: float | None = None) -> FrameResult:
         t_end = time.perf_counter()
         solve_ms = (t_solve - pending.t_submit) * 1e3
         return FrameResult(
@@ -495,5 +498,6 @@ class Odometry:
                 made_kf or self._map_ms > 0.0) else None,
             preprocess_ms=pending.preprocess_ms, solve_ms=solve_ms,
             total_ms=pending.preprocess_ms + (t_end - pending.t_submit) * 1e3,
+            inlier_share=share,
         )
 

@@ -20,7 +20,9 @@ class FrameResult:
     of T_cur_kf, level-0 inliers, whether the frame became a keyframe (and why), the number of
     keyframe edges it was tracked with, the edge selection and local mapping times when it
     became a keyframe (mapping None when off), and host timings in ms (preprocess; solve =
-    from dispatch to read-back; total). A keyframe's pose is the window's refined one."""
+    from dispatch to read-back; total); ``inlier_share``: the level-0 inliers per keyframe
+    edge in view (None for the first frame and LOST ones). A keyframe's pose is the window's
+    refined one."""
 
     timestamp: float
     pose: np.ndarray
@@ -35,6 +37,19 @@ class FrameResult:
     preprocess_ms: float
     solve_ms: float
     total_ms: float
+    inlier_share: float | None = None
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """A keyframe pose refined by the local window, as the tracker took it: the keyframe's
+    timestamp, the index of the frame being concluded when it was taken, and its pose
+    T_world_kf before and after (4, 4)."""
+
+    keyframe_timestamp: float
+    frame_index: int
+    before: np.ndarray
+    after: np.ndarray
 
 
 class FrameResults:
