@@ -56,6 +56,9 @@ class Config:
     # point-to-plane ICP of keyframe depth points added to the edge residual (depth.py)
     depth_residual: bool = False
     depth_points: int = 256  # keyframe depth points with depth_residual
+    # rolling shutter: the rgb camera's readout time, top row to bottom row (s); 0: a global
+    # shutter; None: the camera's own (the source's readout_s; frontend/shutter.py)
+    readout_s: float | None = None
     # --- keyframes (host) ---
     kf_flow_weight: float = 0.02  # w1, on RMS flow (px)
     kf_flow_t_weight: float = 0.04  # w2, on RMS flow without rotation (px)
@@ -101,6 +104,9 @@ class Config:
             raise ValueError("Config.window_size must be at least 3 (the newest two stay)")
         if not 0.0 <= self.lost_share_ratio <= self.doubt_share_ratio < 1.0:
             raise ValueError("Config needs 0 <= lost_share_ratio <= doubt_share_ratio < 1")
+        if self.readout_s is not None and not 0.0 <= self.readout_s < 1.0:
+            raise ValueError("Config.readout_s must be in [0, 1) seconds, or None (the "
+                             "camera's own)")
         if self.mapping_lag < 0:
             raise ValueError("Config.mapping_lag must be >= 0 (0: the window runs inline)")
         if not self.activation_depth_step >= 0:
@@ -136,10 +142,24 @@ class Config:
                 raise ValueError(f"unknown config key {key!r}; known: {', '.join(sorted(known))}")
             current = getattr(self, key)
             try:
-                changes[key] = _parse_like(current, raw)
+                optional = "None" in str(known[key].type)
+                changes[key] = (_parse_optional(str(known[key].type), raw)
+                                if current is None or (optional and raw.strip().lower()
+                                                       in ("none", "null"))
+                                else _parse_like(current, raw))
             except ValueError as err:
                 raise ValueError(f"--set {key}={raw}: {err}") from None
         return self.replace(**changes)
+
+
+def _parse_optional(annotation: str, raw: str) -> object:
+    """A value for a field that is None now, by its annotation (``float | None``): "none"
+    keeps None."""
+    if raw.strip().lower() in ("none", "null", ""):
+        return None
+    kind = annotation.split("|")[0].strip()
+    return {"float": float, "int": int, "bool": lambda r: _parse_like(True, r)}.get(
+        kind, str)(raw)
 
 
 def _parse_like(current: object, raw: str) -> object:

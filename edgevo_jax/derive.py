@@ -5,6 +5,7 @@ one compiled program).
 
 Tracker (``align.track``, ``chunk``, ``batch``):
 - static: ``SolveStructure`` (the number of pyramid levels);
+- ``readout_time``: the rolling shutter's readout time (the config's, else the camera's);
 - traced: ``SolveKnobs`` (per-level Huber radius and gate, iterations, eta, step tolerance,
   reject limit; learnt Params override the Huber radii, eta and the weighting model).
 
@@ -78,6 +79,12 @@ def solve_knobs(
         max_rejects=np.asarray(config.max_rejects, np.int32),
         weighting=weighting,
     )
+
+
+def readout_time(config: Config, camera_readout_s: float) -> float:
+    """The rolling shutter's readout time (s) a run uses: ``Config.readout_s`` where set,
+    else the camera's own (its source's ``readout_s``; 0: a global shutter)."""
+    return float(camera_readout_s if config.readout_s is None else config.readout_s)
 
 
 # --- the window ----------------------------------------------------------------------------

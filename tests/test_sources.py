@@ -50,13 +50,15 @@ def folder_poses(clip):
 
 @pytest.mark.parametrize("ros2", [False, True], ids=["ros1", "ros2"])
 def test_a_bag_tracks_like_its_folder(clip, folder_poses, tmp_path, ros2):
-    """rgb8 / bgr8 colour, 32FC1 depth with NaN, camera_info with the fr1 K and D: the
-    same images, camera and undistortion as the folder, so the same trajectory."""
-    bag = to_bag.write_bag(clip, tmp_path / ("clip" if ros2 else "clip.bag"), ros2=ros2,
+    """rgb8 / bgr8 colour, 32FC1 depth with NaN, camera_info with the fr1 K and D, named as
+    the benchmark names its bags: the same images, camera, undistortion and rolling shutter
+    as the folder, so the same trajectory."""
+    bag = to_bag.write_bag(clip, tmp_path / (clip.name + ("" if ros2 else ".bag")), ros2=ros2,
                            rgb_encoding="bgr8" if ros2 else "rgb8")
     seq = open_source(bag, groundtruth=clip.root / "groundtruth.txt")  # the same start pose
     assert isinstance(seq, Source) and len(seq) == len(clip)
     assert seq.intrinsics == clip.intrinsics and np.allclose(seq.distortion, clip.distortion)
+    assert seq.readout_s == clip.readout_s > 0
     assert np.allclose(seq.timestamps, clip.timestamps, atol=1e-6)
     rgb, depth = seq.rectify_frame(*seq.decode_frame(3))
     rgb_f, depth_f = clip.load_frame(3)

@@ -25,7 +25,7 @@ from ..camera import Intrinsics
 from ..io import read_trajectory
 from ..metrics import associate_timestamps
 from .source import DEPTH_TOPIC, INFO_TOPIC, RGB_TOPIC
-from .tum import Distortion, undistort
+from .tum import Distortion, readout_from_name, undistort
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
@@ -64,6 +64,7 @@ class BagSequence:
     depth_topic: str
     stamps: np.ndarray  # (N, 2) int64
     headers: np.ndarray  # (N, 2) float64
+    readout_s: float = 0.0  # the colour camera's rolling-shutter readout time (s)
     _reader: list = field(default_factory=list, repr=False)  # the open AnyReader, lazily
 
     def __len__(self) -> int:
@@ -195,12 +196,15 @@ def load_bag(
     groundtruth: str | os.PathLike[str] | None = None,
     max_diff: float = 0.02,
     frame_step: int = 1,
+    readout_s: float | None = None,
 ) -> BagSequence:
     """Open a ROS1 bag (``.bag``) or ROS2 bag (folder, ``.db3``, ``.mcap``) as a ``Source``.
 
     The camera comes from ``intrinsics`` when given (then no undistortion), else from the
     first message on ``info_topic``. ``frame_step`` k keeps every k-th rgb and depth message
-    before association. ``groundtruth``: a TUM trajectory file. Errors (ValueError, naming
+    before association. ``groundtruth``: a TUM trajectory file. ``readout_s``: the colour
+    camera's rolling-shutter readout time (s); None: the Freiburg cameras' when the bag's
+    name names one (the benchmark's bags), else 0 (a global shutter). Errors (ValueError, naming
     the topic): a topic missing or of another message type, an unsupported encoding, rgb and
     depth of different sizes, no camera_info and no ``intrinsics``, no pair associating;
     FileNotFoundError for a missing bag or ground-truth file."""
@@ -218,7 +222,9 @@ def load_bag(
                       intrinsics=Intrinsics(1.0, 1.0, 1.0, 1.0), distortion=None,
                       timestamps=np.zeros(0), groundtruth=gt, width=0, height=0,
                       rgb_topic=rgb_topic, depth_topic=depth_topic,
-                      stamps=np.zeros((0, 2), np.int64), headers=np.zeros((0, 2)))
+                      stamps=np.zeros((0, 2), np.int64), headers=np.zeros((0, 2)),
+                      readout_s=readout_from_name(root.name) if readout_s is None
+                      else float(readout_s))
     try:
         reader = seq._open()
     except Exception as err:  # rosbags' own errors: not a bag, unreadable

@@ -29,7 +29,9 @@ class Source(Protocol):
     rgb undistorted onto the pinhole ``intrinsics`` and depth float32 metres (H, W), 0 where
     nothing was measured. ``timestamps[i]`` (seconds, increasing) is known once frame i is
     decoded; ``groundtruth`` is (timestamps (M,), poses7 (M, 7) T_world_cam) or None.
-    A live source is read in order only (i = 0, 1, 2, ...)."""
+    A live source is read in order only (i = 0, 1, 2, ...). Optional: ``readout_s``, the
+    colour camera's rolling-shutter readout time (s; ``camera_readout``), and
+    ``depth_timestamps`` (N,), the depth images' times."""
 
     name: str
     intrinsics: Intrinsics
@@ -51,6 +53,12 @@ class Source(Protocol):
     def rectify_frame(self, rgb: np.ndarray, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """A decoded frame as the tracker takes it: undistorted rgb, float32 metres depth."""
         ...
+
+
+def camera_readout(seq: Source) -> float:
+    """The rolling-shutter readout time (s) of a source's colour camera, 0 (a global shutter)
+    where it does not say."""
+    return float(getattr(seq, "readout_s", 0.0) or 0.0)
 
 
 def is_bag(path: str | os.PathLike[str]) -> bool:

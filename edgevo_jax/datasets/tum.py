@@ -36,6 +36,8 @@ __all__ = [
     "load_sequence",
     "read_calibration",
     "read_file_list",
+    "readout_from_name",
+    "FREIBURG_READOUT_S",
 ]
 
 Distortion = tuple[float, ...]
@@ -53,6 +55,11 @@ FREIBURG_CAMERAS: dict[str, tuple[Intrinsics, Distortion | None]] = {
     ),
     "freiburg3": (Intrinsics(535.4, 539.2, 320.1, 247.6), None),
 }
+
+#: Rolling-shutter readout time (s) of the benchmark's colour cameras (Kinect-type sensors
+#: reading their rows one after another): 20 ms, measured without ground truth by
+#: ``scripts/readout_time.py`` on fr1 and fr3 clips (docs/decisions.md).
+FREIBURG_READOUT_S = 0.020
 
 # The project's development clips (in ../shared/data/tum next to a checkout; not shipped).
 SHARED_CLIPS = (
@@ -154,6 +161,13 @@ def camera_from_name(name: str) -> tuple[Intrinsics, Distortion | None]:
             "explicitly"
         )
     return FREIBURG_CAMERAS[f"freiburg{found.pop()}"]
+
+
+def readout_from_name(name: str) -> float:
+    """The rolling-shutter readout time (s) of the Freiburg camera a name names
+    (``FREIBURG_READOUT_S``), 0.0 (a global shutter) when it names none."""
+    return FREIBURG_READOUT_S if len({a or b for a, b in _CAMERA_RE.findall(
+        name.lower())}) == 1 else 0.0
 
 
 @functools.lru_cache(maxsize=8)
@@ -277,7 +291,8 @@ class TumSequence:
 
     ``timestamps`` are the rgb timestamps of the associated rgb/depth pairs,
     ``depth_timestamps`` their depth images'; ``groundtruth`` is (timestamps, poses7) or
-    None. Equality is identity (fields hold arrays).
+    None; ``readout_s`` the colour camera's rolling-shutter readout time (s, 0: a global
+    shutter). Equality is identity (fields hold arrays).
     """
 
     root: Path
@@ -292,6 +307,7 @@ class TumSequence:
     width: int
     height: int
     depth_timestamps: np.ndarray | None = None
+    readout_s: float = 0.0
 
     def __len__(self) -> int:
         return len(self.rgb_files)
@@ -374,6 +390,7 @@ def load_sequence(
     max_diff: float = 0.02,
     check_images: bool = True,
     frame_step: int = 1,
+    readout_s: float | None = None,
 ) -> TumSequence:
     """Load a TUM RGB-D sequence folder, associating rgb and depth like ``associate.py``.
 
@@ -385,7 +402,9 @@ def load_sequence(
     Intrinsics come from ``intrinsics`` when given, else from the folder's ``calibration.txt``
     (ETH3D, ``read_calibration``), else from the folder name (``camera_from_name``).
     ``distortion`` defaults to the folder name's camera, or to None when the intrinsics come
-    from ``intrinsics`` or calibration.txt. Ground
+    from ``intrinsics`` or calibration.txt; ``readout_s`` (the rolling shutter's readout
+    time, s) likewise: ``FREIBURG_READOUT_S`` for a Freiburg camera named, else 0 (ETH3D's
+    cameras have global shutters). Ground
     truth is read when ``groundtruth.txt`` exists (None otherwise: runs go on without ATE).
 
     Everything that can be checked without tracking is checked here, so that a bad input stops
@@ -415,6 +434,7 @@ def load_sequence(
     elif intrinsics is None:
         intr, name_dist = camera_from_name(name)
         dist = name_dist if distortion is FROM_NAME else distortion
+        readout_s = readout_from_name(name) if readout_s is None else readout_s
     else:
         intr = Intrinsics(*(float(v) for v in intrinsics)).validate()
         dist = None if distortion is FROM_NAME else distortion
@@ -466,6 +486,7 @@ def load_sequence(
         width=int(first.shape[1]),
         height=int(first.shape[0]),
         depth_timestamps=depth_t[pairs[:, 1]],
+        readout_s=0.0 if readout_s is None else float(readout_s),
     )
     if intrinsics is not None or (root / CALIBRATION).is_file():  # the Freiburg table: 640x480
         intr.validate(width=seq.width, height=seq.height)

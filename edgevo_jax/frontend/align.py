@@ -25,6 +25,7 @@ from .depth import depth_valid, point_to_plane
 from .residuals import consistency_dots_at_level, residual_jacobian_grad, warp
 from .robust import edge_weights, huber_cost, huber_weights
 from .selection import KeyframeEdges
+from .shutter import Shutter, row_motion
 
 #: Layout of ``LevelSystem.sums``: the upper triangle of H row by row (21), g (6), the robust
 #: cost, the inlier count and the sum of the inliers' residuals.
@@ -93,15 +94,18 @@ def normal_equations(
     intr: Intrinsics,
     level: int,
     knobs: SolveKnobs,
+    shutter: Shutter | None = None,
 ) -> LevelSystem:
     """Gated, Huber-weighted normal equations of the distance residuals at pose T.
 
-    pts_k (3, K): the keyframe edges back-projected. The cost that Levenberg-Marquardt
+    pts_k (3, K): the keyframe edges back-projected; ``shutter``: the frame's rolling
+    shutter (``shutter.Shutter``; None: a global shutter). The cost that Levenberg-Marquardt
     compares is a proper function of the pose: the Huber cost of each inlier, and for every
     other valid keyframe edge (gated, inconsistent or out of view) the Huber cost of the gate,
     so that rejecting a match never lowers the cost.
     """
-    r, J, ok, uv_c, grad = residual_jacobian_grad(field, intr.at_level(level), T, pts_k)
+    rows = None if shutter is None else row_motion(T, shutter, level, field.shape[0])
+    r, J, ok, uv_c, grad = residual_jacobian_grad(field, intr.at_level(level), T, pts_k, rows)
     consistent = consistency_dots_at_level(kf.grad, edge_map, uv_c, r, grad, level) >= knobs.eta
     delta, gate = knobs.huber_delta[level], knobs.max_residual[level]
     mask = kf.valid & ok & (r <= gate) & consistent
@@ -273,6 +277,7 @@ def align_level(
     intr: Intrinsics,
     level: int,
     knobs: SolveKnobs,
+    shutter: Shutter | None = None,
 ) -> tuple[Pose, LevelSystem]:
     """Levenberg-Marquardt on the Huber-weighted (Gauss-Newton) normal equations at one level;
     returns the pose and the normal equations at it.
@@ -284,7 +289,7 @@ def align_level(
     """
 
     def system_at(T):
-        return normal_equations(T, pts_k, kf, field, edge_map, intr, level, knobs)
+        return normal_equations(T, pts_k, kf, field, edge_map, intr, level, knobs, shutter)
 
     def cond(carry):
         i, state = carry
@@ -313,6 +318,7 @@ def track(
     intr: Intrinsics,
     config: Config | SolveStructure,
     knobs: SolveKnobs | None = None,
+    shutter: Shutter | None = None,
 ) -> TrackResult:
     """Align keyframe edges to the frame's distance-field pyramid, coarsest level first.
 
@@ -320,12 +326,15 @@ def track(
     T_init: (4, 4) initial T_cur_kf. ``config`` (static) gives the number of levels: a
     ``derive.SolveStructure`` (``derive.solve_structure``) or a Config; the numbers are read
     from ``knobs`` (traced; default ``derive.solve_knobs(config)``, which needs a Config).
+    ``shutter``: the frame's rolling shutter (``shutter.Shutter``; None: a global shutter,
+    and a program without it).
     """
     knobs = solve_knobs(config) if knobs is None else knobs
     pts_k = unproject(intr, kf.uv, kf.rho)
     T = Pose.from_matrix(jnp.asarray(T_init, pts_k.dtype))
     for level in reversed(range(config.num_levels)):
-        T, final = align_level(T, pts_k, kf, dist[level], edge_map, intr, level, knobs)
+        T, final = align_level(T, pts_k, kf, dist[level], edge_map, intr, level, knobs,
+                               shutter)
     return track_result(T, final, pts_k, kf, dist[0].shape, intr)
 
 

@@ -25,6 +25,7 @@ from ..image.preprocess import EdgeMap
 from ..programs import program
 from .align import TrackResult, track
 from .selection import KeyframeEdges
+from .shutter import Shutter
 
 
 def predict_matrix(A: jnp.ndarray, B: jnp.ndarray) -> jnp.ndarray:
@@ -43,11 +44,16 @@ def track_next(
     B: jnp.ndarray,
     intr: Intrinsics,
     knobs: SolveKnobs,
+    rate: jnp.ndarray | None = None,
+    *,
     config: Config | SolveStructure,
 ) -> TrackResult:
     """Track one frame (dist pyramid, ``preprocess.EdgeMap``) from the constant-velocity
-    prediction of its last two keyframe-relative poses A, B (see ``predict_matrix``)."""
-    return track(kf, dist, edge_map, predict_matrix(A, B), intr, config, knobs)
+    prediction of its last two keyframe-relative poses A, B (see ``predict_matrix``).
+    ``rate``: the rolling shutter's readout time per row over the time since the previous
+    frame (``shutter.Shutter``, with A as the previous pose); None: a global shutter."""
+    shutter = None if rate is None else Shutter(A, rate)
+    return track(kf, dist, edge_map, predict_matrix(A, B), intr, config, knobs, shutter)
 
 
 def track_chunk(
@@ -58,19 +64,22 @@ def track_chunk(
     B: jnp.ndarray,
     intr: Intrinsics,
     knobs: SolveKnobs,
+    rates: jnp.ndarray | None = None,
+    *,
     config: Config | SolveStructure,
 ) -> TrackResult:
     """Track C frames in order against one keyframe: dist holds one (C, H / 2**l, W / 2**l)
     array per level, edge_map holds (C, H, W) arrays. Each frame starts from the prediction of
     the two before it (A, B for the first), as ``track_next`` does. Returns the C
-    TrackResults stacked on a leading axis."""
+    TrackResults stacked on a leading axis. ``rates`` (C,): each frame's rolling-shutter
+    rate (``track_next``); None: a global shutter."""
 
     def step(carry, frame):
         a, b = carry
-        res = track_next(kf, frame[0], frame[1], a, b, intr, knobs, config)
+        res = track_next(kf, frame[0], frame[1], a, b, intr, knobs, frame[2], config=config)
         return (res.T_c_k, a), res
 
-    _, out = jax.lax.scan(step, (A, B), (tuple(dist), edge_map))
+    _, out = jax.lax.scan(step, (A, B), (tuple(dist), edge_map, rates))
     return out
 
 

@@ -17,6 +17,7 @@ from ..camera import Intrinsics, project
 from ..geometry import Pose
 from ..image.interp import bilinear, bilinear_with_grad, edge_direction_at
 from ..image.preprocess import EdgeMap
+from .shutter import RowMotion, shutter_warp
 
 
 def warp(
@@ -47,12 +48,20 @@ def residual_and_jacobian(
 
 
 def residual_jacobian_grad(
-    field: jnp.ndarray, intr: Intrinsics, T_c_k: Pose, pts_k: jnp.ndarray
+    field: jnp.ndarray, intr: Intrinsics, T_c_k: Pose, pts_k: jnp.ndarray,
+    rows: RowMotion | None = None,
 ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray]:
-    """``residual_and_jacobian`` and the field's gradient at the warped pixels (2, K)."""
-    uv_c, pts = warp(intr, T_c_k, pts_k)
+    """``residual_and_jacobian`` and the field's gradient at the warped pixels (2, K).
+    ``rows``: the frame's rolling shutter (``shutter.shutter_warp``; None: a global
+    shutter)."""
+    if rows is None:
+        uv_c, pts = warp(intr, T_c_k, pts_k)
+        scale = None
+    else:
+        uv_c, pts, scale = shutter_warp(intr, T_c_k, pts_k, rows)
     r, grad, inside = bilinear_with_grad(field, uv_c)
-    return r, point_jacobian(intr, pts, grad), inside & (pts[2] > 1e-6), uv_c, grad
+    J = point_jacobian(intr, pts, grad)
+    return r, J if scale is None else J * scale, inside & (pts[2] > 1e-6), uv_c, grad
 
 
 def point_jacobian(intr: Intrinsics, pts: jnp.ndarray, grad: jnp.ndarray) -> jnp.ndarray:

@@ -46,6 +46,7 @@ from tqdm import tqdm
 
 from ..camera import Intrinsics
 from ..config import Config
+from ..datasets.source import camera_readout
 from ..datasets.tum import TumSequence
 from ..derive import SolveStructure, solve_structure
 from ..determinism import full_precision
@@ -160,12 +161,14 @@ def _preprocess_key(config: Config) -> tuple:
     return tuple(getattr(config, f) for f in PREPROCESS_FIELDS)
 
 
-def _step(kf, window_dist, window_ng, source, offset, A, B, intr, knobs, *, config, chunk):
-    """One run's chunk: frames ``offset .. offset + chunk`` of window ``source``."""
+def _step(kf, window_dist, window_ng, source, offset, A, B, intr, knobs, rates, *, config,
+          chunk):
+    """One run's chunk: frames ``offset .. offset + chunk`` of window ``source``; ``rates``
+    (chunk,) their rolling-shutter rates (None: every run has a global shutter)."""
     dist = tuple(jax.lax.dynamic_slice_in_dim(w[source], offset, chunk) for w in window_dist)
     ng = jax.tree.map(lambda w: jax.lax.dynamic_slice_in_dim(w[source], offset, chunk),
                       window_ng)
-    return track_chunk(kf, dist, ng, A, B, intr, knobs, config)
+    return track_chunk(kf, dist, ng, A, B, intr, knobs, rates, config=config)
 
 
 @cache
@@ -173,7 +176,7 @@ def _batched(config: SolveStructure, chunk: int, sharding: NamedSharding | None)
     """The compiled batch step: vmap over runs; the frame windows are shared (not mapped);
     ``config``: the solve's static part."""
     fn = jax.vmap(partial(_step, config=config, chunk=chunk),
-                  in_axes=(0, None, None, 0, 0, 0, 0, 0, 0))
+                  in_axes=(0, None, None, 0, 0, 0, 0, 0, 0, 0))
     if sharding is None:
         return full_precision(jax.jit(fn))
     return full_precision(jax.jit(fn, out_shardings=sharding))
@@ -227,13 +230,17 @@ def evaluate(
             if key not in sources:
                 sources[key] = _Frames(seq, config, n)
             run = BatchRun(seq.name, c, config)
-            odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq))
+            odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq),
+                           readout_s=camera_readout(seq))
             lanes.append(_Lane(run, odo, sources[key], np.asarray(seq.timestamps[:n])))
     mine = lanes[jax.process_index()::jax.process_count()]
     devices = list(jax.local_devices() if devices is None else devices)
     sharding = (NamedSharding(Mesh(np.array(devices), ("runs",)), PartitionSpec("runs"))
                 if len(devices) > 1 else None)
     step = _batched(static, chunk, sharding)
+    # one program for all: rolling-shutter rates for every run when any run has one (a
+    # rate of 0 is a global shutter's solve, to the bit)
+    shutter = any(lane.odo.readout_s > 0 for lane in lanes)
     srcs = list(sources.values())
     total = sum(len(lane.timestamps) for lane in mine)
     bar = tqdm(total=total, desc="batch", unit="frame", disable=not progress, leave=False)
@@ -268,7 +275,7 @@ def evaluate(
                 if not any(stepping[b] for b in members):
                     continue
                 inputs = _stack_inputs([mine[b] for b in members], srcs, slowest,
-                                       chunk + max_lag, len(devices))
+                                       chunk + max_lag, len(devices), chunk, shutter)
                 if sharding is not None:
                     per_run = jax.device_put([*inputs[:1], *inputs[3:]], sharding)
                     inputs = (per_run[0], *inputs[1:3], *per_run[1:])
@@ -305,31 +312,39 @@ def _conclude_chunk(lane: _Lane, out, chunk: int, bar: tqdm) -> None:
 
 
 def _stack_inputs(lanes: list[_Lane], srcs: list[_Frames], slowest: list[int], width: int,
-                  num_devices: int) -> tuple:
+                  num_devices: int, chunk: int, shutter: bool) -> tuple:
     """The step's inputs for runs whose keyframes have the same number of edge slots: per run
     (stacked on a leading runs axis, padded to a power of two times the device count with
     copies of the last run, so that few shapes compile) the keyframe edges, its window and
-    offset, A, B, intrinsics and solve knobs; and the windows, ``width`` frames of each
-    source from its slowest run on (the last frame repeated past the end)."""
+    offset, A, B, intrinsics, solve knobs and, with ``shutter``, the rolling-shutter rates
+    of its next ``chunk`` frames (0 for a global shutter); and the windows, ``width`` frames
+    of each source from its slowest run on (the last frame repeated past the end)."""
     per_lane = []
     for lane in lanes:
         kf, A, B, intr, knobs = lane.odo.solve_inputs()
         s = srcs.index(lane.frames)
         offset = np.int32(min(max(lane.position - slowest[s], 0), width - 1))
+        rates = None
+        if shutter:
+            ts = lane.timestamps[lane.position:lane.position + chunk]
+            rates = lane.odo.shutter_rates(ts, lane.frames.seq.height) if len(ts) else None
+            rates = np.zeros(chunk, np.float32) if rates is None else np.concatenate(
+                [rates, np.repeat(rates[-1:], chunk - len(rates))])
         per_lane.append((KeyframeEdges(*jax.tree.map(np.asarray, kf)), np.int32(s), offset,
-                         A, B, np.asarray(intr, np.float32), knobs))
+                         A, B, np.asarray(intr, np.float32), knobs, rates))
     size = 1 << (len(per_lane) - 1).bit_length()
     size += -size % num_devices
     per_lane += [per_lane[-1]] * (size - len(per_lane))
-    kf, source, offset, A, B, intr, knobs = jax.tree.map(lambda *xs: aligned_stack(xs),
-                                                         *per_lane)
+    kf, source, offset, A, B, intr, knobs, rates = jax.tree.map(lambda *xs: aligned_stack(xs),
+                                                                *per_lane)
     frames = [[src[low + j] for j in range(width)] for src, low in zip(srcs, slowest,
                                                                        strict=True)]
     levels = len(frames[0][0].dist)
     window_dist = tuple(aligned_stack([aligned_stack([f.dist[lv] for f in fs]) for fs in frames])
                         for lv in range(levels))
     window_ng = stack_edge_maps([stack_edge_maps([f.edge_map for f in fs]) for fs in frames])
-    return kf, window_dist, window_ng, source, offset, A, B, Intrinsics(*intr.T), knobs
+    return (kf, window_dist, window_ng, source, offset, A, B, Intrinsics(*intr.T), knobs,
+            rates)
 
 
 def load_configs(path: str | Path, base: Config | None = None) -> list[Config]:

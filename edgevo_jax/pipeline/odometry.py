@@ -17,14 +17,15 @@ import numpy as np
 
 from ..camera import Intrinsics
 from ..config import Config
-from ..derive import solve_knobs, solve_structure
+from ..derive import readout_time, solve_knobs, solve_structure
 from ..frontend import features, selection
 from ..frontend.align import TrackResult, track
 from ..frontend.chunk import track_next_jit
 from ..frontend.depth import depth_points
 from ..frontend.keyframes import keyframe_reason
 from ..frontend.selection import KeyframeEdges, keyframe_edges
-from ..geometry import inverse_np, orthonormalise_np, predict_np
+from ..frontend.shutter import Shutter, shutter_rate, unroll_edges
+from ..geometry import inverse_np, log_np, orthonormalise_np, predict_np
 from ..hostmem import aligned_array, to_host
 from ..image.preprocess import Frame, preprocess
 from ..learn.params import Params, solve_knobs_of
@@ -74,6 +75,8 @@ class Odometry:
     the config's numbers: Huber radii, consistency threshold and the per-edge weighting
     model drive the solve (``params.solve_knobs_of``), ``reobs_a`` the edge selection. None
     or ``Params.default(config)`` give the plain tracker's trajectory, bit for bit.
+    ``readout_s``: the camera's rolling-shutter readout time (s; the source's ``readout_s``,
+    0: a global shutter), unless ``Config.readout_s`` sets one (``frontend.shutter``).
     ``track`` is synchronous. ``submit`` + ``complete`` split it: ``submit`` dispatches the
     device solve and returns at once, so the caller can prepare the next frame on another
     core before ``complete`` reads the result back (one frame in flight at a time).
@@ -84,9 +87,11 @@ class Odometry:
 
     def __init__(
         self, config: Config, intrinsics: Intrinsics, *, initial_pose: np.ndarray | None = None,
-        params: Params | None = None,
+        params: Params | None = None, readout_s: float = 0.0,
     ) -> None:
         self.config = config
+        #: the rolling shutter's readout time the run uses (s): the config's, else the camera's
+        self.readout_s = readout_time(config, readout_s)
         self.intrinsics = Intrinsics(*(float(x) for x in intrinsics)).validate()
         pose = np.eye(4) if initial_pose is None else np.asarray(initial_pose, np.float64)
         if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
@@ -97,6 +102,7 @@ class Odometry:
         self._times: list[float] = []  # their timestamps
         self._shares: list[float] = []  # inlier shares of the last frames not lost
         self._last_t: float | None = None
+        self._tracked_t: float | None = None  # the last frame tracked (not lost)
         self._in_flight = False
         self.num_keyframes = 0
         self._mapper: Mapper | None = None  # made with the first keyframe (image size)
@@ -147,7 +153,7 @@ class Odometry:
         A, B = self._rel
         intr, knobs = self._device_constants()
         output = track_next_jit(self._kf.edges, frame.dist, frame.edge_map, A, B,
-                                intr, knobs, config=self._static)
+                                intr, knobs, self._rate(timestamp, frame), config=self._static)
         return _Pending(frame, timestamp, self._predict(), output, preprocess_ms, t_submit)
 
     def complete(self, pending: _Pending) -> FrameResult:
@@ -282,6 +288,7 @@ class Odometry:
                 dt=timestamp - kf.timestamp, config=self.config,
             )
             kf.inlier_counts.append(inliers)
+            self._tracked_t = timestamp
             self._shares = (self._shares + [inlier_share(res)])[-SHARE_HISTORY:]
             weak = recovery.weak_reason(frame, res, self.config)
             if kf is not self._kf:  # recovered against an earlier keyframe: it takes over
@@ -289,7 +296,12 @@ class Odometry:
             if reason and self._take_mapped(None):  # a new keyframe: from refined poses only
                 pose = kf.pose @ inverse_np(orthonormalise_np(T_c_k))
         else:  # predicted (constant velocity), flagged
-            reason = "lost"
+            # the keyframe stays: a guessed pose made a keyframe would carry its error into
+            # every later frame. Only a loss longer than the keyframe interval starts over
+            # from a new keyframe at the guess (the old one may be out of view for good)
+            since = timestamp - (self._tracked_t if self._tracked_t is not None
+                                 else kf.timestamp)
+            reason = "lost" if since >= self.config.kf_max_interval_s else None
             pose = self._predict() if self._take_mapped(None) else pending.predicted
             # lost frames in a row extrapolate again and again: keep R a rotation, stay finite
             pose = orthonormalise_np(pose) if np.all(np.isfinite(pose)) else pose
@@ -327,9 +339,10 @@ class Odometry:
         for size in slots:
             edges = kf.edges if size == kf.edges.valid.shape[0] else selection.empty_edges(
                 size)._replace(depth_pts=kf.edges.depth_pts, depth_normals=kf.edges.depth_normals)
+            rate = None if self.readout_s <= 0 else np.float32(0.0)
             jax.block_until_ready(track_next_jit(edges, frame.dist, frame.edge_map, A, B, intr,
-                                                 knobs, config=self._static))
-            self._align(dataclasses.replace(kf, edges=edges), frame, np.eye(4))
+                                                 knobs, rate, config=self._static))
+            self._align(dataclasses.replace(kf, edges=edges), frame, np.eye(4), rate)
         h, w = frame.shape
         selection.warm_up(self.config, intr=self.intrinsics, width=w, height=h,
                           reobs_a=self._reobs_a)
@@ -391,17 +404,21 @@ class Odometry:
             frame, [self._kf, *reversed(self._previous)], first=first,
             predicted=pending.predicted,
             starts=recovery.motion_starts(self._poses, self._times, pending.timestamp),
-            align=self._align,
+            align=lambda kf, fr, T: self._align(kf, fr, T, self._rate(pending.timestamp, fr)),
             usable=lambda out: recovery.lost_reason(frame, out, self.config) is None,
             good_enough=None if reference is None
             else (lambda out: not self._under(out, reference, doubt)),
             intrinsics=self.intrinsics, config=self.config)
 
-    def _align(self, kf: _Keyframe, frame: Frame, T_c_k: np.ndarray):
-        """The edge alignment of ``frame`` to ``kf`` from the start T_cur_kf (host arrays)."""
+    def _align(self, kf: _Keyframe, frame: Frame, T_c_k: np.ndarray, rate=None):
+        """The edge alignment of ``frame`` to ``kf`` from the start T_cur_kf (host arrays);
+        ``rate``: the frame's ``shutter.Shutter.rate`` (None: a global shutter), with the
+        last frame's pose as its previous one."""
+        shutter = None if rate is None else Shutter(
+            aligned_array(inverse_np(self._poses[-1]) @ kf.pose, np.float32), np.float32(rate))
         return to_host(_track_jit(
             kf.edges, frame.dist, frame.edge_map, np.asarray(T_c_k, np.float32),
-            self.intrinsics, config=self._static, knobs=self.knobs))
+            self.intrinsics, config=self._static, knobs=self.knobs, shutter=shutter))
 
     # -- internals ------------------------------------------------------------------------
     def _check_frame(self, rgb, depth, timestamp) -> None:
@@ -435,6 +452,23 @@ class Odometry:
             self._constants_key = key
         return self._constants
 
+    def _rate(self, timestamp: float, frame: Frame) -> np.ndarray | None:
+        """``shutter_rates`` of one frame, as a float32 scalar (None: a global shutter)."""
+        rates = self.shutter_rates([timestamp], frame.shape[0])
+        return None if rates is None else rates[0]
+
+    def shutter_rates(self, timestamps, height: int) -> np.ndarray | None:
+        """The rolling shutter's rates (``shutter.Shutter.rate``, float32 (n,)) of the next
+        frames at ``timestamps``, after the last frame concluded; None with a global shutter
+        (a program without it). ``height``: the frames' rows."""
+        if self.readout_s <= 0:
+            return None
+        t = np.asarray(timestamps, np.float64)
+        prev = np.concatenate([[self._times[-1] if self._times else t[0]], t[:-1]])
+        return np.array([shutter_rate(self.readout_s, height, b - a) if self._times or i
+                         else 0.0 for i, (a, b) in enumerate(zip(prev, t, strict=True))],
+                        np.float32)
+
     def _predict(self) -> np.ndarray:
         """Constant velocity: T_w_pred = T_w_last (T_w_prev^-1 T_w_last) (``predict_np``)."""
         if len(self._poses) < 2:
@@ -461,6 +495,10 @@ class Odometry:
         T_prior = inverse_np(pose) @ self._poses[-1] if self._poses else np.eye(4)
         edges = keyframe_edges(frame, self.config, seed=self.config.seed + self.num_keyframes,
                                T_prior=T_prior, intr=self.intrinsics, reobs_a=self._reobs_a)
+        if self.readout_s > 0 and self._poses:  # to its middle row's time: its own velocity
+            rate = shutter_rate(self.readout_s, frame.shape[0], timestamp - self._times[-1])
+            edges = unroll_edges(edges, rate * log_np(inverse_np(self._poses[-1]) @ pose),
+                                 self.intrinsics, frame.shape[0])
         n = int(edges.valid.sum())
         if n < self.config.min_inliers:
             return None

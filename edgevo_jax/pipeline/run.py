@@ -27,7 +27,7 @@ from tqdm import tqdm
 
 from ..config import Config
 from ..datasets.groundtruth import groundtruth_pose_at
-from ..datasets.source import Source
+from ..datasets.source import Source, camera_readout
 from ..frontend.align import TrackResult
 from ..frontend.chunk import track_chunk_jit
 from ..hostmem import aligned_stack, to_host
@@ -143,7 +143,8 @@ def run_sequence(
     after each frame is concluded, with its rectified rgb and pre-processed ``Frame`` and
     the tracker in its state after the frame (e.g. ``viz.recording.RerunRecording``)."""
     started = time.perf_counter() if started is None else started
-    odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq), params=params)
+    odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq), params=params,
+                   readout_s=camera_readout(seq))
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
     run = RunResult(config=config)
     writer = TrajectoryWriter(out) if out is not None else None
@@ -223,7 +224,7 @@ def track_in_chunks(odo: Odometry, frames: list[Frame], timestamps: list[float],
             continue
         todo = frames[i:i + size]
         t_submit = time.perf_counter()
-        out = to_host(dispatch_chunk(odo, todo, size))
+        out = to_host(dispatch_chunk(odo, todo, size, timestamps[i:i + size]))
         done = conclude_chunk(odo, todo, timestamps[i:i + size], out, t_submit=t_submit)
         results += done
         i += len(done)
@@ -246,17 +247,23 @@ def conclude_chunk(odo: Odometry, frames: list[Frame], timestamps: list[float], 
     return results
 
 
-def dispatch_chunk(odo: Odometry, frames: list[Frame], size: int) -> TrackResult:
-    """Dispatch the scan over ``frames`` (at most ``size``, padded to it by repeating the
-    last) against ``odo``'s current keyframe; returns device arrays (C leading)."""
-    if not 0 < len(frames) <= size:
-        raise ValueError(f"a chunk takes 1 to {size} frames, got {len(frames)}")
+def dispatch_chunk(odo: Odometry, frames: list[Frame], size: int,
+                   timestamps: list[float]) -> TrackResult:
+    """Dispatch the scan over ``frames`` at ``timestamps`` (at most ``size``, padded to it by
+    repeating the last) against ``odo``'s current keyframe; returns device arrays (C
+    leading)."""
+    if not 0 < len(frames) <= size or len(timestamps) != len(frames):
+        raise ValueError(f"a chunk takes 1 to {size} frames and their timestamps, got "
+                         f"{len(frames)} frames and {len(timestamps)} timestamps")
+    rates = odo.shutter_rates(timestamps, frames[0].shape[0])
+    if rates is not None:  # padding frames repeat the last one's rate
+        rates = np.concatenate([rates, np.repeat(rates[-1:], size - len(frames))])
     frames = list(frames) + [frames[-1]] * (size - len(frames))
     dist = tuple(aligned_stack([f.dist[lv] for f in frames])
                  for lv in range(len(frames[0].dist)))
     ng = stack_edge_maps([f.edge_map for f in frames])
     kf, A, B, intr, knobs = odo.solve_inputs()
-    return track_chunk_jit(kf, dist, ng, A, B, intr, knobs, config=odo.structure)
+    return track_chunk_jit(kf, dist, ng, A, B, intr, knobs, rates, config=odo.structure)
 
 
 def _record(run: RunResult, result: FrameResult, writer: TrajectoryWriter | None) -> None:

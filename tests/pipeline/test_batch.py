@@ -18,10 +18,11 @@ from edgevo_jax.datasets import load_sequence
 from edgevo_jax.pipeline import batch
 from edgevo_jax.pipeline.run import run_sequence, summarise
 
-# numbers of the solve (vmapped), host-side settings and the edge budget (padded slots)
+# numbers of the solve (vmapped), host-side settings and the edge budget (padded slots); the
+# clip's rolling shutter and a global shutter (rate 0 beside the others' rates)
 CONFIGS = [
     Config(),
-    Config(huber_delta=(2.0, 2.0, 2.0), eta=0.5),
+    Config(huber_delta=(2.0, 2.0, 2.0), eta=0.5, readout_s=0.0),
     Config(num_edges=256, max_residual=(4.0, 4.0, 4.0), iterations=(6, 8, 10)),
 ]
 

@@ -1,5 +1,6 @@
 """The scan tracker: the device-side prediction, and chunks of frames tracked in one call
-giving the frame-by-frame driver's trajectory (to 1e-6 m; it is in fact bit-identical)."""
+giving the frame-by-frame driver's trajectory (to 1e-6 m; it is in fact bit-identical), with
+the clips' rolling shutter (each frame's rate from its own time step)."""
 
 from __future__ import annotations
 
@@ -52,7 +53,8 @@ def bundled_frames():
 
 
 def _frame_by_frame(seq, config, frames, ts):
-    odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq))
+    odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq),
+                   readout_s=seq.readout_s)
     return [odo.track_frame(f, t) for f, t in zip(frames, ts, strict=True)], odo
 
 
@@ -61,7 +63,8 @@ def test_scan_tracker_gives_the_frame_by_frame_trajectory(bundled_frames, size):
     """Chunks cut at keyframes and re-tracked: same poses, states and keyframes."""
     seq, config, frames, ts = bundled_frames
     ref, odo_ref = _frame_by_frame(seq, config, frames, ts)
-    odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq))
+    odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq),
+                   readout_s=seq.readout_s)
     got = track_in_chunks(odo, frames, ts, size=size)
     assert odo_ref.num_keyframes >= 2  # the clip makes a keyframe part-way: chunks are cut
     assert [r.keyframe for r in got] == [r.keyframe for r in ref]
@@ -77,7 +80,8 @@ def test_scan_tracker_on_a_longer_shared_clip(shared_clip):
     frames = [preprocess(*seq.load_frame(i), config) for i in range(60)]
     ts = [float(t) for t in seq.timestamps[:60]]
     ref, odo_ref = _frame_by_frame(seq, config, frames, ts)
-    odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq))
+    odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq),
+                   readout_s=seq.readout_s)
     got = track_in_chunks(odo, frames, ts, size=4)
     assert odo_ref.num_keyframes > 5
     err = np.abs(np.array([r.pose for r in got]) - np.array([r.pose for r in ref]))
@@ -93,4 +97,4 @@ def test_chunk_errors(bundled_frames):
         track_in_chunks(odo, frames[:2], ts[:1], size=2)
     odo.track_frame(frames[0], ts[0])
     with pytest.raises(ValueError, match="a chunk takes 1 to 2 frames"):
-        dispatch_chunk(odo, frames[:3], 2)
+        dispatch_chunk(odo, frames[:3], 2, ts[:3])

@@ -88,6 +88,7 @@ def test_an_unrelated_frame_is_lost_without_a_jump_and_tracking_goes_on(xyz, ted
         out.append(odo.track(*(teddy.load_frame(100) if i == 5 else f), t))
     swapped = out[5]
     assert swapped.state == LOST and "inlier share" in swapped.reason
+    assert swapped.keyframe is None  # a guessed pose never becomes a keyframe
     expected = out[4].pose @ (np.linalg.inv(out[3].pose) @ out[4].pose)
     np.testing.assert_allclose(swapped.pose, expected, atol=1e-9)
     assert all(r.state == OK for r in out[6:])
@@ -131,3 +132,19 @@ def test_feature_hypothesis_finds_a_wide_motion(teddy):
 def test_feature_detect_rejects_a_colour_image():
     with pytest.raises(ValueError, match="gray must be uint8"):
         features.detect(np.zeros((8, 8, 3), np.uint8))
+
+
+def test_a_loss_longer_than_the_keyframe_interval_starts_over(xyz, teddy):
+    """Unrelated frames for more than ``kf_max_interval_s``: the frames lost within the
+    interval keep the keyframe; the first one past it becomes a keyframe at its guessed
+    pose (the old view may be gone for good), still flagged LOST."""
+    seq, frames = xyz
+    odo = Odometry(Config(), seq.intrinsics)
+    t = [float(x) for x in seq.timestamps]
+    for i in range(4):
+        odo.track(*frames[i], t[i])
+    kf_before = odo.keyframe[0]
+    early = odo.track(*teddy.load_frame(100), t[3] + 0.5)
+    assert early.state == LOST and early.keyframe is None and odo.keyframe[0] == kf_before
+    late = odo.track(*teddy.load_frame(120), t[3] + 1.2)
+    assert late.state == LOST and late.keyframe == "lost" and odo.keyframe[0] == t[3] + 1.2

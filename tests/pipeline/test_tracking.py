@@ -150,7 +150,8 @@ def test_real_sequences_under_ate_bound(shared_clip, clip, frames, bound):
 def test_pipelined_runner_equals_synchronous_tracking(bundled):
     """Overlapping preprocessing with the solve changes timing only, never the trajectory."""
     run = run_sequence(bundled, Config(), progress=False)
-    odo = Odometry(Config(), bundled.intrinsics, initial_pose=run.poses[0])
+    odo = Odometry(Config(), bundled.intrinsics, initial_pose=run.poses[0],
+                   readout_s=bundled.readout_s)
     for i, expected in enumerate(run.results):
         got = odo.track(*bundled.load_frame(i), bundled.timestamps[i])
         np.testing.assert_array_equal(got.pose, expected.pose)

@@ -34,6 +34,7 @@ def test_black_frame_is_lost_with_a_predicted_pose_and_tracking_goes_on(clip):
     black = odo.track(np.zeros_like(frames[2][0]), frames[2][1], seq.timestamps[2])
     assert (r0.state, r1.state) == (OK, OK)
     assert black.state == LOST and black.reason == "no edges in the frame"
+    assert black.keyframe is None
     assert np.all(np.isfinite(black.pose)) and black.covariance is None
     # constant velocity: the lost frame continues the last motion (no jump)
     expected = r1.pose @ (np.linalg.inv(r0.pose) @ r1.pose)
