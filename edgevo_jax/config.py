@@ -54,7 +54,8 @@ class Config:
     lost_share_ratio: float = 0.5
     recovery_features: bool = True  # recovery also starts from SIFT + PnP (features.py)
     # point-to-plane ICP of keyframe depth points added to the edge residual (depth.py)
-    depth_residual: bool = False
+    # (at the finest level, where the edges have brought the pose into its basin)
+    depth_residual: bool = True
     depth_points: int = 256  # keyframe depth points with depth_residual
     # rolling shutter: the rgb camera's readout time, top row to bottom row (s); 0: a global
     # shutter; None: the camera's own (the source's readout_s; frontend/shutter.py)

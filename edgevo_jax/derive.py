@@ -81,6 +81,14 @@ def solve_knobs(
     )
 
 
+def basin_px(config: Config) -> float:
+    """How far (level-0 px) the edge alignment reaches from its start: the residual gate of
+    the coarsest level in level-0 pixels (max_residual[-1] x 2^(levels - 1)); an edge
+    farther than that from its match is rejected at every level, so a solve that moved
+    farther found its minimum beyond where it could see."""
+    return float(config.max_residual[-1]) * 2.0 ** (config.num_levels - 1)
+
+
 def readout_time(config: Config, camera_readout_s: float) -> float:
     """The rolling shutter's readout time (s) a run uses: ``Config.readout_s`` where set,
     else the camera's own (its source's ``readout_s``; 0: a global shutter)."""

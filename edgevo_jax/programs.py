@@ -14,9 +14,13 @@ Contract: the outputs equal those of ``jax.jit(fn)`` bit for bit (the exported m
 one jit lowers). Calls under a JAX transformation (tracers among the inputs) and programs
 that cannot be exported or stored go through ``jax.jit(fn)`` unchanged. Stored files hold a
 pickled pytree structure: the folder is trusted like the compilation cache beside it.
+
+``release_compiled`` drops JAX's compiled programs before a process runs out of memory maps
+(each tracker and batch calls it when it starts).
 """
 from __future__ import annotations
 
+import gc
 import hashlib
 import logging
 import os
@@ -142,3 +146,28 @@ class _Kept:
             f.write(data)
         os.replace(tmp, path)  # whole files only, whatever runs beside
         return _jit_call(exported), out_trees[0]
+
+
+#: share of this process's memory-map limit past which ``release_compiled`` drops programs
+MAP_SHARE = 0.75
+
+
+def release_compiled(*, share: float = MAP_SHARE) -> bool:
+    """Drop JAX's compiled programs when this process holds more than ``share`` of its
+    memory-map limit. XLA's CPU backend maps every compiled kernel into memory (~2,500
+    maps per tracker configuration on this project's machine); past Linux's
+    vm.max_map_count (65,530 by default) its next compilation crashes the process. The
+    programs compile (or load, when kept) again the next time they run. Returns whether it
+    dropped them; False where /proc does not tell (not Linux)."""
+    try:
+        limit = int(Path("/proc/sys/vm/max_map_count").read_text())
+        with open("/proc/self/maps", "rb") as f:
+            count = sum(1 for _ in f)
+    except (OSError, ValueError):
+        return False
+    if count <= share * limit:
+        return False
+    _log.info("%d of %d memory maps in use: dropping JAX's compiled programs", count, limit)
+    jax.clear_caches()
+    gc.collect()
+    return True

@@ -5,6 +5,7 @@ modules."""
 from __future__ import annotations
 
 import importlib.util
+import os
 from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
@@ -12,12 +13,35 @@ from types import ModuleType
 import pytest
 
 from edgevo_jax import enable_batch_exact
+from edgevo_jax.programs import release_compiled
 
 # batch-size-exact arithmetic before any JAX computation (the CLI does the same): a run then
 # equals its batched self bit for bit (tests/test_batch.py, notebooks/05)
 enable_batch_exact()
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+
+
+@pytest.fixture(autouse=True)
+def _room_for_programs():
+    """Each test starts with room for its compiled programs (``programs.release_compiled``:
+    the suite compiles hundreds of configurations in one process, ~2,500 memory maps each)."""
+    release_compiled()
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _no_persistent_cache():
+    """The CLI's on-disk caches (compiled and exported programs, ``EDGEVO_CACHE_DIR``) off:
+    tests that call the CLI in-process would otherwise switch XLA's persistent cache on for
+    the rest of the session and write the user's ~/.cache/edgevo_jax (the kept programs are
+    tested with folders of their own: ``kept_programs``)."""
+    before = os.environ.get("EDGEVO_CACHE_DIR")
+    os.environ["EDGEVO_CACHE_DIR"] = ""
+    yield
+    if before is None:
+        os.environ.pop("EDGEVO_CACHE_DIR", None)
+    else:
+        os.environ["EDGEVO_CACHE_DIR"] = before
 SHARED_TUM = Path(__file__).resolve().parents[2] / "shared" / "data" / "tum"
 
 

@@ -3,6 +3,7 @@ loaded without tracing, one program per signature, and plain jit where nothing c
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import NamedTuple
 
 import jax
@@ -100,3 +101,24 @@ def test_static_argnames_as_str_or_sequence(static):
     pair, x = _inputs(4)
     out = programs.program(_fn, static_argnames=static)(pair, x, 1.0, power=2)
     assert _same(out, jax.jit(_fn, static_argnames="power")(pair, x, 1.0, power=2))
+
+
+def test_release_compiled_drops_programs_past_the_share_of_memory_maps():
+    """Past the share of vm.max_map_count the compiled programs go (and compile again when
+    called: a new trace); under it nothing happens."""
+    if not Path("/proc/self/maps").is_file():
+        pytest.skip("no /proc: memory maps are not counted here")
+    traces = []
+
+    @jax.jit
+    def f(x):
+        traces.append(1)
+        return x + 1
+
+    f(np.float32(1))
+    assert not programs.release_compiled(share=1.0) and len(traces) == 1
+    f(np.float32(2))
+    assert len(traces) == 1  # still compiled
+    assert programs.release_compiled(share=0.0)  # every process holds some maps
+    f(np.float32(3))
+    assert len(traces) == 2

@@ -20,6 +20,7 @@ import jax.numpy as jnp
 
 from ..camera import Intrinsics
 from ..frontend.residuals import warp
+from ..frontend.shutter import RowMotion, shutter_warp
 from ..geometry import Pose
 from ..image.interp import bilinear, nearest_edge_gradient
 
@@ -41,12 +42,16 @@ def carried_gradient(
 
 def reproject(
     intr: Intrinsics, T_new_host: Pose, pts_host: jnp.ndarray, grad: jnp.ndarray,
-    field: jnp.ndarray, edge_map: jnp.ndarray,
+    field: jnp.ndarray, edge_map: jnp.ndarray, rows: RowMotion | None = None,
 ) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray]:
     """Host edges (points (3, N) in the host camera, gradients (2, N)) seen from the new
     keyframe: pixels (2, N), residuals (N,) in the new keyframe's level-0 distance field,
-    cosine (N,) between the carried gradient and the nearest edge's, and visibility (N,)."""
-    uv, pts = warp(intr, T_new_host, pts_host)
+    cosine (N,) between the carried gradient and the nearest edge's, and visibility (N,).
+    ``rows``: the new keyframe's rolling shutter (``frontend.shutter``; None: global)."""
+    if rows is None:
+        uv, pts = warp(intr, T_new_host, pts_host)
+    else:
+        uv, pts, _ = shutter_warp(intr, T_new_host, pts_host, rows)
     r, inside = bilinear(field, uv)
     g_near, found = nearest_edge_gradient(edge_map, uv)
     cos = jnp.where(found, jnp.sum(carried_gradient(intr, T_new_host, pts_host, grad)

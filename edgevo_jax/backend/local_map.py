@@ -40,6 +40,7 @@ from ..camera import Intrinsics, unproject
 from ..config import Config
 from ..derive import MappingConfig, join_window, split_window, window_config
 from ..frontend.selection import KeyframeEdges
+from ..frontend.shutter import RowMotion
 from ..geometry import Pose, inverse_np, orthonormalise_np
 from ..hostmem import to_host
 from ..image.preprocess import EdgeMap, Frame
@@ -72,6 +73,7 @@ class _WindowKeyframe:
     track: np.ndarray = field(default=None)  # type: ignore[assignment]
     rho_sensor: np.ndarray = field(default=None)  # type: ignore[assignment]
     activatable: np.ndarray = field(default=None)  # type: ignore[assignment]  # valid, continuous
+    row_twist: np.ndarray = field(default=None)  # type: ignore[assignment]  # (6,) per row
 
     def __post_init__(self) -> None:
         k = self.rho.shape[0]
@@ -79,6 +81,7 @@ class _WindowKeyframe:
         self.active = np.zeros(k, bool) if self.active is None else self.active
         self.track = np.zeros(k, np.int32) if self.track is None else self.track
         self.activatable = self.valid.copy() if self.activatable is None else self.activatable
+        self.row_twist = np.zeros(6) if self.row_twist is None else self.row_twist
 
 
 def depth_continuous(depth: np.ndarray, uv: np.ndarray, grad: np.ndarray, *,
@@ -124,15 +127,20 @@ def _candidate_slots(edges: KeyframeEdges, k: int):
 
 
 def _activation_step(intr, T_new_host, uv, rho, grad, valid, active, track, field_new,
-                     nearest_new, *, width, height, cell, max_angle_deg, gate):
+                     nearest_new, twist_new, *, width, height, cell, max_angle_deg, gate):
     """For (h, K) host edges re-projected into the new keyframe (T_new_host (h, 4, 4)): the
     track counts, one more where an edge is seen again there (under the gate, gradients
     within the angle), and the activation mask over the edges not active yet; ``valid`` is
-    each host's ``activatable`` mask (valid slots on continuous depth)."""
+    each host's ``activatable`` mask (valid slots on continuous depth); ``twist_new`` (6,)
+    the new keyframe's rolling-shutter motion per row, or None."""
+    rows = None if twist_new is None else RowMotion(
+        twist_new, jnp.asarray(0.5 * (height - 1), twist_new.dtype),
+        jnp.zeros((), twist_new.dtype))
+
     def one(T, uv_h, rho_h, grad_h):
         pts = unproject(intr, uv_h, rho_h)
         return reproject(intr, Pose.from_matrix(T, orthonormalise="quaternion"), pts, grad_h,
-                         field_new, nearest_new)
+                         field_new, nearest_new, rows)
 
     uv_new, r, cos, vis = jax.vmap(one)(T_new_host, uv, rho, grad)
     seen = valid & vis & (r <= gate) & (cos >= math.cos(math.radians(max_angle_deg)))
@@ -195,10 +203,14 @@ class LocalMap:
     shape: tuple[int, int]
     window: list[_WindowKeyframe] = field(default_factory=list)
     prior: Prior | None = None
+    #: the camera has a rolling shutter: keyframes bring their motion per row
+    #: (``add_keyframe(..., row_twist=...)``), which the window's residuals model
+    rolling_shutter: bool = False
 
     def __post_init__(self) -> None:
         self.intrinsics = np.asarray(self.intrinsics, np.float32)
         self._mcfg = window_config(self.config)
+        self.rolling_shutter = bool(self.rolling_shutter)
         self._structure, self._numbers = split_window(self._mcfg)
 
     @property
@@ -206,9 +218,10 @@ class LocalMap:
         """The window's intrinsics estimate as an Intrinsics of floats."""
         return Intrinsics(*(float(x) for x in self.intrinsics))
 
-    def add_keyframe(self, pose: np.ndarray, edges: KeyframeEdges, frame: Frame
-                     ) -> tuple[np.ndarray, dict]:
-        """Take a new keyframe (pose T_w_k (4, 4); its tracked edges, numpy; its frame) into
+    def add_keyframe(self, pose: np.ndarray, edges: KeyframeEdges, frame: Frame,
+                     row_twist: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+        """Take a new keyframe (pose T_w_k (4, 4); its tracked edges, numpy, at its middle
+        row's time; its frame; with a rolling shutter its motion per level-0 row (6,)) into
         the window; returns its pose after refinement and the step's stats (whether it
         refined; then inliers, tries and costs)."""
         cfg = self.config
@@ -225,7 +238,8 @@ class LocalMap:
         new = _WindowKeyframe(
             pose=np.asarray(pose, np.float64), uv=uv, rho=rho, grad=grad, valid=valid,
             dist0=dist0, edge_map=EdgeMap(dist0, jnp.asarray(frame.edge_map.code)),
-            activatable=activatable)
+            activatable=activatable,
+            row_twist=np.zeros(6) if row_twist is None else np.asarray(row_twist, np.float64))
         if self.prior is not None:
             self.prior = _append_to_prior_jit(self.prior, np.asarray(new.pose, np.float32))
         self._activate(new)
@@ -250,7 +264,8 @@ class LocalMap:
                 grad=np.zeros((2, K), np.float32), valid=np.zeros(K, bool), dist0=field0,
                 edge_map=edge_map)
 
-        scratch = LocalMap(self.config, self.intrinsics, self.shape)
+        scratch = LocalMap(self.config, self.intrinsics, self.shape,
+                           rolling_shutter=self.rolling_shutter)
         scratch.window = [empty() for _ in range(n - 1)]
         scratch._activate(empty())
         scratch.window.append(empty())
@@ -276,6 +291,7 @@ class LocalMap:
         track, act = _activation_jit(
             self.camera, T, hosts["uv"], hosts["rho"], hosts["grad"], hosts["activatable"],
             hosts["active"], hosts["track"], new.dist0, new.edge_map,
+            np.asarray(new.row_twist, np.float32) if self.rolling_shutter else None,
             width=width, height=height, cell=self.config.activation_cell,
             max_angle_deg=float(self.config.activation_max_angle_deg),
             gate=np.float32(self.config.max_residual[0]))
@@ -311,7 +327,9 @@ class LocalMap:
             fields=tuple(kf.dist0 for kf in self.window),  # per keyframe: nothing copied
             intrinsics=jnp.asarray(self.intrinsics), grad=jnp.asarray(np.stack(grad)),
             edge_map=tuple(kf.edge_map for kf in self.window),
-            rho_prior=jnp.asarray(np.stack(sensor)))
+            rho_prior=jnp.asarray(np.stack(sensor)),
+            row_twists=jnp.asarray(np.stack([kf.row_twist for kf in self.window]), jnp.float32)
+            if self.rolling_shutter else None)
         return problem, picks
 
     def _refine(self) -> dict:

@@ -65,6 +65,10 @@ class WindowProblem(NamedTuple):
     rho_prior (n, A), optional: measured inverse depths (the depth sensor's), which
     MappingConfig.depth_prior_sigma turns into the prior term 0.5 ((rho - rho_prior) / sigma)^2
     per active edge. None: no depth measurement.
+    row_twists (n, 6), optional: each keyframe's motion per level-0 row [v, w] under a
+    rolling shutter (``frontend.shutter``; its hosted edges are already at its middle row's
+    time): a point seen by keyframe j is moved into the row it lands on. Held fixed (not
+    refined). None: global shutters.
     """
 
     poses: jnp.ndarray
@@ -76,6 +80,7 @@ class WindowProblem(NamedTuple):
     grad: jnp.ndarray | None = None
     edge_map: EdgeMap | tuple[EdgeMap, ...] | None = None
     rho_prior: jnp.ndarray | None = None
+    row_twists: jnp.ndarray | None = None
 
     @property
     def camera(self) -> Intrinsics:
@@ -176,6 +181,8 @@ def edge_residuals(problem: WindowProblem, eta: float = 0.6) -> EdgeResiduals:
     Pi_t, Pw_t = P_i[:, hosts], P_w[:, hosts]
     R_j = R_w[:, None]  # (n, 1, 3, 3): R_w_j of each target
     P_j = _rot_t(R_j, Pw_t - t_w.T[:, :, None, None])
+    if problem.row_twists is not None:  # into the row of each target it lands on
+        P_j = _rows_moved(P_j, problem.row_twists, problem.intrinsics, _height(problem))
     Z = P_j[2]
     front = Z > 1e-6
     iz = 1.0 / jnp.where(front, Z, 1.0)
@@ -214,6 +221,30 @@ def edge_residuals(problem: WindowProblem, eta: float = 0.6) -> EdgeResiduals:
                                        flat[j], r_flat[j], grad_flat[j]) for j in range(n)]
         consistent = (jnp.stack(dots) >= eta).reshape(n, n - 1, A)
     return EdgeResiduals(r, J_rho, J_xi, J_c, considered, ok, consistent)
+
+
+def _height(problem: WindowProblem) -> int:
+    """The keyframes' image rows (static)."""
+    f = problem.fields
+    return (f[0] if isinstance(f, tuple | list) else f[0]).shape[0]
+
+
+def _rows_moved(P_j: jnp.ndarray, twists: jnp.ndarray, intrinsics: jnp.ndarray,
+                height: int) -> jnp.ndarray:
+    """Points (3, n, n-1, A) in the target keyframes' cameras moved into the rows they land
+    on (``frontend.shutter.shutter_warp``, one fixed-point round), twists (n, 6) per row of
+    each target; the Jacobians are left as at the unmoved point (the move is ~1e-2 of it)."""
+    fy, cy = intrinsics[1], intrinsics[3]
+    v, w = (twists[:, k].T[:, :, None, None] for k in (slice(0, 3), slice(3, 6)))
+    moved = jnp.stack([w[1] * P_j[2] - w[2] * P_j[1] + v[0],
+                       w[2] * P_j[0] - w[0] * P_j[2] + v[1],
+                       w[0] * P_j[1] - w[1] * P_j[0] + v[2]])
+    ref = 0.5 * (height - 1)
+
+    def row(P):
+        return fy * P[1] / jnp.where(P[2] > 1e-6, P[2], 1.0) + cy - ref
+
+    return P_j - row(P_j - row(P_j) * moved) * moved
 
 
 def _edge_codes(edge_map: EdgeMap | tuple[EdgeMap, ...], j: int) -> jnp.ndarray:

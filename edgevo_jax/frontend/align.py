@@ -72,8 +72,10 @@ class LevelSystem(NamedTuple):
 class TrackResult(NamedTuple):
     """Output of one alignment: the pose T_cur_kf (4, 4), its covariance (6, 6) over a left
     twist [v, w], level-0 inliers, mean inlier residual (px), the RMS optical flow of the
-    visible edges with and without rotation (px), how many edges warp into the image, and
-    the level-0 robust cost (Huber, the gate's cost for each rejected edge)."""
+    visible edges with and without rotation (px), how many edges warp into the image, the
+    level-0 robust cost (Huber, the gate's cost for each rejected edge), and ``moved``: the
+    RMS distance (level-0 px) between the visible edges' projections at the start pose and
+    at the solution (how far the solve went from where it started)."""
 
     T_c_k: jnp.ndarray
     covariance: jnp.ndarray
@@ -83,6 +85,7 @@ class TrackResult(NamedTuple):
     flow_t: jnp.ndarray
     visible: jnp.ndarray
     cost: jnp.ndarray
+    moved: jnp.ndarray
 
 
 def normal_equations(
@@ -99,7 +102,11 @@ def normal_equations(
     """Gated, Huber-weighted normal equations of the distance residuals at pose T.
 
     pts_k (3, K): the keyframe edges back-projected; ``shutter``: the frame's rolling
-    shutter (``shutter.Shutter``; None: a global shutter). The cost that Levenberg-Marquardt
+    shutter (``shutter.Shutter``; None: a global shutter). With the keyframe's depth points
+    and the frame's depth map, the depth residual joins at level 0 (``depth_system``; the
+    depth image is read as a global shutter's at the frame's time: moving its points by the
+    colour camera's shutter or by the rgb-depth time offset raised the ATE on fr1_rpy, see
+    docs/decisions.md). The cost that Levenberg-Marquardt
     compares is a proper function of the pose: the Huber cost of each inlier, and for every
     other valid keyframe edge (gated, inconsistent or out of view) the Huber cost of the gate,
     so that rejecting a match never lowers the cost.
@@ -109,7 +116,7 @@ def normal_equations(
     consistent = consistency_dots_at_level(kf.grad, edge_map, uv_c, r, grad, level) >= knobs.eta
     delta, gate = knobs.huber_delta[level], knobs.max_residual[level]
     mask = kf.valid & ok & (r <= gate) & consistent
-    if kf.depth_pts is not None and edge_map.depth is not None:
+    if kf.depth_pts is not None and edge_map.depth is not None and level == 0:
         extra = depth_system(T, kf, edge_map.depth, intr, level, delta, gate)
     else:
         extra = None
@@ -331,11 +338,11 @@ def track(
     """
     knobs = solve_knobs(config) if knobs is None else knobs
     pts_k = unproject(intr, kf.uv, kf.rho)
-    T = Pose.from_matrix(jnp.asarray(T_init, pts_k.dtype))
+    T = start = Pose.from_matrix(jnp.asarray(T_init, pts_k.dtype))
     for level in reversed(range(config.num_levels)):
         T, final = align_level(T, pts_k, kf, dist[level], edge_map, intr, level, knobs,
                                shutter)
-    return track_result(T, final, pts_k, kf, dist[0].shape, intr)
+    return track_result(T, final, pts_k, kf, dist[0].shape, intr, start)
 
 
 def track_result(
@@ -345,10 +352,11 @@ def track_result(
     kf: KeyframeEdges,
     shape: tuple[int, int],
     intr: Intrinsics,
+    start: Pose,
 ) -> TrackResult:
-    """The TrackResult of an alignment that ended at pose T with level-0 normal equations
-    ``final``: covariance, inlier statistics and the optical flow of the visible edges;
-    shape (H, W) of level 0."""
+    """The TrackResult of an alignment that started at pose ``start`` and ended at pose T
+    with level-0 normal equations ``final``: covariance, inlier statistics, the optical flow
+    of the visible edges and how far they moved from the start; shape (H, W) of level 0."""
     H = final.H + 1e-9 * (_trace6(final.H) + 1.0) * jnp.eye(6, dtype=final.H.dtype)
     # optical flow of the edges that stay in view, with and without rotation (keyframe rule)
     uv_c, pts_c = warp(intr, T, pts_k)
@@ -368,4 +376,5 @@ def track_result(
         flow_t=rms_flow(kf.uv, uv_t, visible),
         visible=jnp.sum(visible),
         cost=final.cost,
+        moved=rms_flow(warp(intr, start, pts_k)[0], uv_c, visible),
     )

@@ -1,6 +1,7 @@
-"""The optional depth residual (``Config.depth_residual``): point-to-plane ICP of keyframe
-depth points against the frame's depth map, added to the edge residual's normal equations
-(as REVO and its successors combine them).
+"""The depth residual (``Config.depth_residual``, on by default): point-to-plane ICP of
+keyframe depth points against the frame's depth map, added to the edge residual's normal
+equations at the finest pyramid level (as REVO and its successors combine them; at the
+coarse levels the start is still far and the nearest-pixel matches are wrong).
 
 A keyframe brings M points p_k with normals n_k (keyframe camera, metres; ``depth_points``).
 At pose T = T_cur_kf the point q = T p_k projects into the frame; the nearest pixel with its

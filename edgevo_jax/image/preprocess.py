@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..config import Config
-from ..hostmem import aligned_empty
+from ..hostmem import aligned_array, aligned_empty
 
 
 class EdgeMap(NamedTuple):
@@ -233,8 +233,9 @@ class PreprocessJob:
         d = np.where(np.isfinite(d) & (d >= config.min_depth) & (d <= config.max_depth), d, 0.0)
         map_depth = None
         if config.depth_residual:
-            map_depth = np.where(np.isfinite(depth) & (depth >= config.min_depth)
-                                 & (depth <= config.max_depth), depth, 0.0).astype(np.float32)
+            map_depth = aligned_array(np.where(
+                np.isfinite(depth) & (depth >= config.min_depth) & (depth <= config.max_depth),
+                depth, 0.0), np.float32)  # 64-byte aligned: JAX takes it without a copy
         return cls(pts, grad, mag, d.astype(np.float32), (h, w), fields, depth, codes, gray,
                    map_depth)
 

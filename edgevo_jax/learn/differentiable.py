@@ -376,7 +376,8 @@ def track_differentiable(
         inputs = (params, data, mask.astype(f), dots, kf.valid.astype(f))
         T = _unflat(_implicit_pose(_Stationarity(spec), _flat(T), inputs))
         final = _system(T, params, data, mask, dots, kf.valid, 0, spec)
-    return track_result(T, final, data.pts_k, kf, dist[0].shape, intr)
+    start = Pose.from_matrix(jnp.asarray(T_init_s, dist[0].dtype))
+    return track_result(T, final, data.pts_k, kf, dist[0].shape, intr, start)
 
 
 def level_system(

@@ -177,7 +177,7 @@ def track_smooth(
     mag = jnp.zeros_like(kf.rho) if mag is None else jnp.asarray(mag, kf.rho.dtype)
     disc = jnp.zeros_like(kf.rho) if kf.disc is None else kf.disc
     edges = _Edges(unproject(intr, kf.uv, kf.rho), kf, mag, disc, intr)
-    T = Pose.from_matrix(jnp.asarray(T_init, dtype))
+    T = start = Pose.from_matrix(jnp.asarray(T_init, dtype))
     for level in reversed(range(config.num_levels)):
         def system_at(T, level=level):
             return smooth_system(T, params, edges, dist[level], edge_map.code, level, config,
@@ -188,4 +188,4 @@ def track_smooth(
 
         T, _ = jax.lax.scan(step, T, None, length=smoothing.steps[level])
     final = smooth_system(T, params, edges, dist[0], edge_map.code, 0, config, smoothing)
-    return track_result(T, final, edges.pts_k, kf, dist[0].shape, intr)
+    return track_result(T, final, edges.pts_k, kf, dist[0].shape, intr, start)

@@ -58,9 +58,11 @@ class Mapper:
     needed); ``due(None)`` all of them. ``close()`` stops the worker (pending results are
     dropped); a closed Mapper takes no more keyframes."""
 
-    def __init__(self, config: Config, intrinsics: Intrinsics, shape: tuple[int, int]) -> None:
+    def __init__(self, config: Config, intrinsics: Intrinsics, shape: tuple[int, int], *,
+                 rolling_shutter: bool = False) -> None:
         self.lag = config.mapping_lag
-        self.local_map = LocalMap(config, np.asarray(intrinsics), shape)
+        self.local_map = LocalMap(config, np.asarray(intrinsics), shape,
+                                  rolling_shutter=rolling_shutter)
         self._pool = (ThreadPoolExecutor(1, thread_name_prefix="edgevo-map",
                                          initializer=_lower_priority)
                       if self.lag > 0 else None)
@@ -76,13 +78,14 @@ class Mapper:
         return self._pool.submit(self.local_map.warm_up)
 
     def add(self, key: object, pose: np.ndarray, edges: KeyframeEdges, frame: Frame,
-            frame_index: int) -> Mapped | None:
-        """Hand over a keyframe (see the class doc)."""
+            frame_index: int, row_twist: np.ndarray | None = None) -> Mapped | None:
+        """Hand over a keyframe (see the class doc; ``row_twist``: its rolling-shutter
+        motion per row, ``LocalMap.add_keyframe``)."""
         pose = np.asarray(pose, np.float64)
         if self._pool is None:
-            return self._mapped(key, self._step(pose, edges, frame))
+            return self._mapped(key, self._step(pose, edges, frame, row_twist))
         self._pending.append((frame_index + self.lag, key,
-                              self._pool.submit(self._step, pose, edges, frame)))
+                              self._pool.submit(self._step, pose, edges, frame, row_twist)))
         return None
 
     def due(self, frame_index: int | None) -> list[Mapped]:
@@ -99,10 +102,10 @@ class Mapper:
             self._pending.clear()
             self._pool.shutdown(wait=True, cancel_futures=True)
 
-    def _step(self, pose: np.ndarray, edges: KeyframeEdges, frame: Frame
-              ) -> tuple[np.ndarray, Intrinsics, float]:
+    def _step(self, pose: np.ndarray, edges: KeyframeEdges, frame: Frame,
+              row_twist: np.ndarray | None) -> tuple[np.ndarray, Intrinsics, float]:
         t0 = time.perf_counter()
-        refined, _ = self.local_map.add_keyframe(pose, edges, frame)
+        refined, _ = self.local_map.add_keyframe(pose, edges, frame, row_twist)
         return refined, self.local_map.camera, (time.perf_counter() - t0) * 1e3
 
     def _mapped(self, key: object, step) -> Mapped:

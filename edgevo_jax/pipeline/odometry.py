@@ -17,7 +17,7 @@ import numpy as np
 
 from ..camera import Intrinsics
 from ..config import Config
-from ..derive import readout_time, solve_knobs, solve_structure
+from ..derive import basin_px, readout_time, solve_knobs, solve_structure
 from ..frontend import features, selection
 from ..frontend.align import TrackResult, track
 from ..frontend.chunk import track_next_jit
@@ -29,7 +29,7 @@ from ..geometry import inverse_np, log_np, orthonormalise_np, predict_np
 from ..hostmem import aligned_array, to_host
 from ..image.preprocess import Frame, preprocess
 from ..learn.params import Params, solve_knobs_of
-from ..programs import program
+from ..programs import program, release_compiled
 from . import recovery
 from .mapping import Mapped, Mapper
 from .recovery import inlier_share
@@ -89,6 +89,7 @@ class Odometry:
         self, config: Config, intrinsics: Intrinsics, *, initial_pose: np.ndarray | None = None,
         params: Params | None = None, readout_s: float = 0.0,
     ) -> None:
+        release_compiled()  # a process that tracked under many configurations: room first
         self.config = config
         #: the rolling shutter's readout time the run uses (s): the config's, else the camera's
         self.readout_s = readout_time(config, readout_s)
@@ -260,7 +261,7 @@ class Odometry:
         if self._start_frame():  # refined keyframe poses taken: the prediction moved with them
             pending = dataclasses.replace(pending, predicted=self._predict())
         kf = start_kf = self._kf
-        solved = res
+        solved, confirmed = res, False
         lost = recovery.lost_reason(frame, res, self.config)
         # lost, or doubted (a share of inliers far under the recent frames': a wrong basin,
         # as after a prediction far off): recovery tries other starts and other keyframes
@@ -272,7 +273,7 @@ class Odometry:
                                     or (reference is None and doubt > 0)):
             found = self._recover(frame, pending, None if lost else res, reference)
             if found is not None:
-                kf, res = found
+                kf, res, confirmed = found
                 lost = None
         if lost is None and self._under(res, reference, lost_ratio):
             lost = (f"inlier share {inlier_share(res):.2f} under {lost_ratio:g} x the recent "
@@ -290,7 +291,9 @@ class Odometry:
             kf.inlier_counts.append(inliers)
             self._tracked_t = timestamp
             self._shares = (self._shares + [inlier_share(res)])[-SHARE_HISTORY:]
-            weak = recovery.weak_reason(frame, res, self.config)
+            weak = recovery.weak_reason(frame, res, self.config) or (
+                None if confirmed else self._doubt_reason(frame, kf, res, reference,
+                                                          pending.timestamp))
             if kf is not self._kf:  # recovered against an earlier keyframe: it takes over
                 self._kf = kf
             if reason and self._take_mapped(None):  # a new keyframe: from refined poses only
@@ -396,9 +399,29 @@ class Odometry:
         """Whether a result's inlier share is under ``ratio`` x the reference share."""
         return reference is not None and inlier_share(res) < ratio * reference
 
+    def _doubt_reason(self, frame: Frame, kf: _Keyframe, res, reference: float | None,
+                      timestamp: float) -> str | None:
+        """Why a usable solve that nothing independent confirmed is doubtful (WEAK): its
+        inlier share stayed under ``doubt_share_ratio`` of the recent frames' from every
+        start, or it went farther from its start than the edge alignment's basin
+        (``derive.basin_px``) and no feature start converges to it (``recovery.confirm``)."""
+        doubt = self.config.doubt_share_ratio
+        if self._under(res, reference, doubt):
+            return (f"inlier share {inlier_share(res):.2f} under {doubt:g} x the recent "
+                    f"{reference:.2f}, not confirmed by features")
+        basin, moved = basin_px(self.config), float(res.moved)
+        if moved > basin and not recovery.confirm(
+                frame, kf, res, intrinsics=self.intrinsics, config=self.config,
+                align=lambda k, fr, T: self._align(k, fr, T, self._rate(timestamp, fr)),
+                usable=lambda out: recovery.lost_reason(frame, out, self.config) is None):
+            return (f"moved {moved:.0f} px from its start, past the {basin:.0f} px basin, not "
+                    "confirmed by features")
+        return None
+
     def _recover(self, frame: Frame, pending: _Pending, first, reference: float | None):
-        """``recovery.search`` from this tracker's keyframes and last poses; returns
-        (keyframe, result) better than ``first`` (None when it was lost), or None."""
+        """``recovery.search`` from this tracker's keyframes and last poses: a
+        ``recovery.Found`` (the first solve kept when nothing beats it; ``first`` None when
+        it was lost), or None when nothing usable was found."""
         doubt = self.config.doubt_share_ratio
         return recovery.search(
             frame, [self._kf, *reversed(self._previous)], first=first,
@@ -495,10 +518,14 @@ class Odometry:
         T_prior = inverse_np(pose) @ self._poses[-1] if self._poses else np.eye(4)
         edges = keyframe_edges(frame, self.config, seed=self.config.seed + self.num_keyframes,
                                T_prior=T_prior, intr=self.intrinsics, reobs_a=self._reobs_a)
-        if self.readout_s > 0 and self._poses:  # to its middle row's time: its own velocity
-            rate = shutter_rate(self.readout_s, frame.shape[0], timestamp - self._times[-1])
-            edges = unroll_edges(edges, rate * log_np(inverse_np(self._poses[-1]) @ pose),
-                                 self.intrinsics, frame.shape[0])
+        twist = None  # its motion per row, with a rolling shutter
+        if self.readout_s > 0:
+            twist = np.zeros(6)
+            if self._poses:  # to its middle row's time: its own velocity
+                rate = shutter_rate(self.readout_s, frame.shape[0],
+                                    timestamp - self._times[-1])
+                twist = rate * log_np(inverse_np(self._poses[-1]) @ pose)
+                edges = unroll_edges(edges, twist, self.intrinsics, frame.shape[0])
         n = int(edges.valid.sum())
         if n < self.config.min_inliers:
             return None
@@ -506,8 +533,9 @@ class Odometry:
         kf = _Keyframe(timestamp, pose, None, n, frame=frame)
         if self.config.mapping:
             if self._mapper is None:
-                self._mapper = Mapper(self.config, self.intrinsics, frame.shape)
-            mapped = self._mapper.add(kf, pose, edges, frame, self._index)
+                self._mapper = Mapper(self.config, self.intrinsics, frame.shape,
+                                      rolling_shutter=self.readout_s > 0)
+            mapped = self._mapper.add(kf, pose, edges, frame, self._index, twist)
             if mapped is not None:  # inline: refined already
                 self._apply_mapped(mapped)
                 pose = kf.pose

@@ -1,5 +1,6 @@
-"""Judging a frame's solve (``lost_reason``, ``weak_reason``, ``inlier_share``) and the
-recovery search: a doubted or lost frame aligned again from other starts.
+"""Judging a frame's solve (``lost_reason``, ``weak_reason``, ``inlier_share``), the
+recovery search (a doubted or lost frame aligned again from other starts) and the
+confirmation of a solve by an independent start (``confirm``).
 
 A frame's solve is judged by its inlier share (``inlier_share``). When the share is far under
 the recent frames' (or the solve is unusable), ``search`` aligns the frame again, against the
@@ -11,12 +12,17 @@ against the earlier keyframes kept, from the prediction and the same starts. The
 wins. The search stops once the best is good enough, or when the ORB start, independent
 evidence, converges to the first solve's pose (``agree``): the doubt came from the scene, not
 the basin.
+
+A solve is *confirmed* when an alignment from a start made of image features (ORB, then
+SIFT keypoints matched, and PnP) and one from another start converge to the same pose: two
+routes agree, one of which does not rest on the distance fields at all (``Found.confirmed``,
+``confirm``).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -29,6 +35,15 @@ from ..image.preprocess import Frame
 #: two alignments agree (converged into one minimum) within this translation (m) and rotation
 #: (degrees): ~2 px at 1.5 m for f ~ 530 px, under the spacing of distinct minima (edges)
 AGREE_M, AGREE_DEG = 0.005, 0.5
+
+
+class Found(NamedTuple):
+    """What the recovery search settles on: the keyframe and the solve, and whether a
+    feature start and another start converged to that solve's pose (``agree``)."""
+
+    keyframe: Any
+    result: Any
+    confirmed: bool
 
 
 def inlier_share(res) -> float:
@@ -110,42 +125,74 @@ def search(
     starts: Sequence[np.ndarray], align: Callable[[Any, Frame, np.ndarray], Any],
     usable: Callable[[Any], bool], good_enough: Callable[[Any], bool] | None,
     intrinsics: Intrinsics, config: Config,
-) -> tuple[Any, Any] | None:
+) -> Found | None:
     """The recovery search (module doc). ``keyframes``: the current one first, then the
     earlier ones to try (each with ``.pose`` T_w_kf); ``first``: the solve from the
     prediction, None when it was unusable; ``predicted`` and ``starts`` (``motion_starts``)
     world poses; ``align(kf, frame, T_cur_kf)`` a solve; ``usable(res)`` whether a solve can
     be used; ``good_enough(res)`` whether it ends the search (None: nothing does, as before
-    any share was seen). Returns (keyframe, solve) better than ``first`` by inlier share, or
-    None."""
+    any share was seen). Returns the keyframe and solve with the highest inlier share (the
+    first's when none beats it) and whether it is confirmed; None when nothing is usable."""
     current = keyframes[0]
     best = (current, first) if first is not None else None
+    # every usable solve: (keyframe, solve, whether its start came from features)
+    tried: list[tuple[Any, Any, bool]] = [] if first is None else [(current, first, False)]
 
-    def better(kf, out) -> None:
+    def better(kf, out, features: bool) -> None:
         nonlocal best
-        if usable(out) and (best is None or inlier_share(out) > inlier_share(best[1])):
+        if not usable(out):
+            return
+        tried.append((kf, out, features))
+        if best is None or inlier_share(out) > inlier_share(best[1]):
             best = (kf, out)
 
     def settled() -> bool:
         return best is not None and best[1] is not first and good_enough is not None \
             and good_enough(best[1])
 
+    agreed = False  # the ORB start converged to the first solve: the scene, not the basin
     for kf in keyframes:
         guesses = [kf.pose, *starts] if kf is current else [predicted, *starts]
         for T_w_c in guesses:
-            better(kf, align(kf, frame, inverse_np(T_w_c) @ kf.pose))
-        confirmed = False
+            better(kf, align(kf, frame, inverse_np(T_w_c) @ kf.pose), False)
         if kf is current and not settled() and config.recovery_features:
             for kind in ("orb", "sift"):
                 T_c_k = feature_start(kf, frame, kind, intrinsics, config)
                 if T_c_k is None:
                     continue
                 out = align(kf, frame, T_c_k)
-                better(kf, out)
-                confirmed = kind == "orb" and first is not None and agree(out, first) \
-                    and usable(out)
-                if confirmed or settled():
-                    break
-        if confirmed or settled():
+                better(kf, out, True)
+                agreed = kind == "orb" and first is not None and usable(out) \
+                    and agree(out, first)
+                break  # SIFT (~40 ms an image) only where ORB finds no pose
+        if agreed or settled():
             break
-    return best if best is not None and best[1] is not first else None
+    if best is None:
+        return None
+    kf, res = best
+    return Found(kf, res, confirmed(res, [(out, f) for k, out, f in tried if k is kf]))
+
+
+def confirmed(res, solves: Sequence[tuple[Any, bool]]) -> bool:
+    """Whether ``res`` is among ``solves`` (each a solve and whether its start came from
+    image features) and another of them converged to its pose (``agree``), one of the two
+    from features."""
+    mine = [f for out, f in solves if out is res]
+    return bool(mine) and any(out is not res and (f or mine[0]) and agree(out, res)
+                              for out, f in solves)
+
+
+def confirm(frame: Frame, kf: Any, res, *, align: Callable[[Any, Frame, np.ndarray], Any],
+            usable: Callable[[Any], bool], intrinsics: Intrinsics, config: Config) -> bool:
+    """Whether an alignment of ``frame`` to ``kf`` from a feature start (ORB, then SIFT,
+    ``feature_start``) converges to the pose of the solve ``res`` (``agree``): independent
+    confirmation of a solve that went far from its start. False when no feature start
+    gives a usable solve there, or with ``Config.recovery_features`` off."""
+    if not config.recovery_features:
+        return False
+    for kind in ("orb", "sift"):  # SIFT only where ORB finds no pose
+        T_c_k = feature_start(kf, frame, kind, intrinsics, config)
+        if T_c_k is not None:
+            out = align(kf, frame, T_c_k)
+            return bool(usable(out) and agree(out, res))
+    return False

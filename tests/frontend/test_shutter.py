@@ -162,3 +162,43 @@ def test_the_shutter_model_cuts_the_drift_on_the_fast_clip(shared_clip):
         scores.append(ate(*seq.groundtruth, run.timestamps, matrices_to_poses7(run.poses))
                       ["rmse"])
     assert scores[0] < 0.6 * scores[1], scores
+
+
+def test_the_window_sees_each_keyframe_through_its_rolling_shutter():
+    """``backend.window.edge_residuals`` with keyframes' row twists: an edge hosted by a
+    rolling-shutter keyframe (unrolled to its middle row's time) lands in another
+    rolling-shutter keyframe where the exact simulation sees it (fields u and v read the
+    pixel back, 0.05 px); zero twists are the plain window, bit for bit."""
+    from edgevo_jax.backend.window import WindowProblem, edge_residuals
+
+    pts_w = _scene(3, 40)
+    T_w = [np.eye(4), np.linalg.inv(exp_np(np.array([0.03, -0.01, 0.02, 0.02, -0.05, 0.01])))]
+    vel = [VEL, -0.7 * VEL]
+    uv, rho = [], []
+    for T, v in zip(T_w, vel, strict=True):
+        seen, z = _rs_observe(np.linalg.inv(T), pts_w, TAU, v)
+        e = KeyframeEdges(uv=seen.astype(np.float32), rho=(1 / z).astype(np.float32),
+                          grad=np.zeros_like(seen, np.float32), valid=np.ones(z.size, bool))
+        e = unroll_edges(e, v * TAU / H, INTR, H)
+        uv.append(e.uv)
+        rho.append(e.rho)
+    v_grid, u_grid = np.mgrid[0:H, 0:W].astype(np.float64)
+    twists = np.stack([v * TAU / H for v in vel])
+    with jax.enable_x64(True):
+        def residuals(field, row_twists):
+            problem = WindowProblem(
+                poses=jnp.asarray(np.stack(T_w)), uv=jnp.asarray(np.stack(uv), jnp.float64),
+                rho=jnp.asarray(np.stack(rho), jnp.float64), valid=jnp.ones((2, 40), bool),
+                fields=(jnp.asarray(field),) * 2, intrinsics=jnp.asarray(np.asarray(INTR)),
+                row_twists=row_twists)
+            return np.asarray(edge_residuals(problem).r)[:, 0]  # (target, edge)
+
+        got_u = residuals(u_grid, jnp.asarray(twists))
+        got_v = residuals(v_grid, jnp.asarray(twists))
+        plain = residuals(u_grid, None)
+        np.testing.assert_array_equal(residuals(u_grid, jnp.zeros((2, 6))), plain)
+    for j, T in enumerate(T_w):  # target j sees the edges hosted by the other keyframe
+        seen, _ = _rs_observe(np.linalg.inv(T), pts_w, TAU, vel[j])
+        assert np.abs(got_u[j] - seen[0]).max() < 0.05
+        assert np.abs(got_v[j] - seen[1]).max() < 0.05
+        assert np.abs(plain[j] - seen[0]).max() > 1.0
