@@ -13,10 +13,10 @@ from pathlib import Path
 
 STARTED = time.perf_counter()  # the command's start (the start-up it reports counts from it)
 
+from .datasets import BUNDLED_CLIP  # noqa: E402
 from .datasets.source import DEPTH_TOPIC, INFO_TOPIC, RGB_TOPIC  # noqa: E402
 from .io import json_safe  # noqa: E402
 
-BUNDLED_CLIP = Path(__file__).resolve().parent / "data" / "rgbd_dataset_freiburg1_xyz_first10"
 
 
 def _parser() -> argparse.ArgumentParser:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from .groundtruth import groundtruth_pose_at
 from .pingpong import pingpong, pingpong_indices
 from .tum import (
@@ -14,7 +16,12 @@ from .tum import (
     subsequence,
 )
 
+#: the clip shipped in the package: the first 10 frames of TUM fr1/xyz (CC BY 4.0), the
+#: default sequence of ``edgevo run``; usable from any working directory
+BUNDLED_CLIP = Path(__file__).resolve().parent.parent / "data" / "rgbd_dataset_freiburg1_xyz_first10"
+
 __all__ = [
+    "BUNDLED_CLIP",
     "FREIBURG_CAMERAS",
     "FROM_NAME",
     "TumSequence",
