@@ -18,7 +18,6 @@ from .datasets.source import DEPTH_TOPIC, INFO_TOPIC, RGB_TOPIC  # noqa: E402
 from .io import json_safe  # noqa: E402
 
 
-
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="edgevo", description="Edge-based RGB-D visual odometry (EdgeVO) in JAX."

@@ -18,7 +18,8 @@ from .tum import (
 
 #: the clip shipped in the package: the first 10 frames of TUM fr1/xyz (CC BY 4.0), the
 #: default sequence of ``edgevo run``; usable from any working directory
-BUNDLED_CLIP = Path(__file__).resolve().parent.parent / "data" / "rgbd_dataset_freiburg1_xyz_first10"
+BUNDLED_CLIP = (Path(__file__).resolve().parent.parent / "data"
+                / "rgbd_dataset_freiburg1_xyz_first10")
 
 __all__ = [
     "BUNDLED_CLIP",
