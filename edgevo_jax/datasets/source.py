@@ -10,7 +10,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from ..camera import Intrinsics
+from ..camera import Camera, Intrinsics
 
 #: The TUM bags' topics (``load_bag``'s defaults).
 RGB_TOPIC = "/camera/rgb/image_color"
@@ -73,6 +73,7 @@ def is_bag(path: str | os.PathLike[str]) -> bool:
 def open_source(
     path: str | os.PathLike[str],
     *,
+    camera: Camera | str | None = None,
     intrinsics: Intrinsics | None = None,
     depth_factor: float = 5000.0,
     frame_step: int = 1,
@@ -84,25 +85,28 @@ def open_source(
 ) -> Source:
     """The reader for ``path``: a ROS bag (``is_bag``: ``bag.load_bag`` with the topics), the
     string ``realsense`` or ``realsense:SERIAL`` (``realsense.open_realsense``; ``max_frames``
-    frames, None: until stopped), else a TUM or ETH3D folder (``tum.load_sequence``: the
-    camera from ``intrinsics``, else the folder's calibration.txt, else its name).
-    ``groundtruth``: a TUM trajectory file for bags and cameras (folders read their own)."""
+    frames, None: until stopped), else a TUM or ETH3D folder (``tum.load_sequence``).
+    The camera: ``camera`` (a ``Camera`` or a preset name of ``camera.CAMERAS``) or
+    ``intrinsics`` (a pinhole) when given, else the source's own (a folder's calibration.txt
+    or name, a bag's camera_info, a RealSense's calibration; ``UnknownCameraError`` when it
+    has none). ``groundtruth``: a TUM trajectory file for bags and cameras (folders read
+    their own)."""
     text = os.fspath(path)
     if text == REALSENSE or text.startswith(REALSENSE + ":"):
         from .realsense import open_realsense
 
         serial = text.partition(":")[2] or None
-        return open_realsense(serial=serial, max_frames=max_frames, intrinsics=intrinsics,
-                              groundtruth=groundtruth)
+        return open_realsense(serial=serial, max_frames=max_frames, camera=camera,
+                              intrinsics=intrinsics, groundtruth=groundtruth)
     if is_bag(path):
         from .bag import load_bag
 
         return load_bag(path, rgb_topic=rgb_topic, depth_topic=depth_topic,
-                        info_topic=info_topic, intrinsics=intrinsics, groundtruth=groundtruth,
-                        frame_step=frame_step)
+                        info_topic=info_topic, camera=camera, intrinsics=intrinsics,
+                        groundtruth=groundtruth, frame_step=frame_step)
     from .tum import load_sequence
 
     if groundtruth is not None:
         raise ValueError(f"{path}: a folder reads its own groundtruth.txt (no --groundtruth)")
-    kwargs = {} if intrinsics is None else {"intrinsics": intrinsics}
-    return load_sequence(path, depth_factor=depth_factor, frame_step=frame_step, **kwargs)
+    return load_sequence(path, camera=camera, intrinsics=intrinsics, depth_factor=depth_factor,
+                         frame_step=frame_step)
