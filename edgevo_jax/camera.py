@@ -183,20 +183,3 @@ def camera_preset(name: str) -> Camera:
                          f"{', '.join(CAMERAS)} (or pass a Camera)")
     return CAMERAS[name].camera
 
-
-class UnknownCameraError(ValueError):
-    """A source whose camera is neither given nor found (in a folder name, a calibration.txt,
-    a bag's camera_info). ``str(err)`` names the API's arguments (``camera=``,
-    ``intrinsics=``); the ``edgevo`` command names its options instead (``cli_message``)."""
-
-    def __init__(self, what: str, *, also: tuple[str, str] | None = None) -> None:
-        self.what, self.also = what, also
-        more = f", or {also[0]}" if also else ""
-        super().__init__(f"{what}: pass camera= (a preset: {', '.join(CAMERAS)}; or a Camera "
-                         f"with intrinsics and distortion) or intrinsics={more}")
-
-    def cli_message(self) -> str:
-        """The message with the ``edgevo run`` options that give a camera."""
-        more = f", or {self.also[1]}" if self.also else ""
-        return (f"{self.what}: pass --camera ({', '.join(CAMERAS)}), --calibration FILE "
-                f"(fx fy cx cy [k1 k2 p1 p2 k3]) or --intrinsics FX FY CX CY{more}")

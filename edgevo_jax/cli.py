@@ -216,9 +216,8 @@ def _camera(args: argparse.Namespace) -> dict:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from .camera import UnknownCameraError
     from .config import Config
-    from .datasets.source import open_source
+    from .datasets.source import SourceError, open_source
     from .pipeline.run import enable_compilation_cache, run_sequence, summarise
 
     config = Config().with_overrides(args.overrides)
@@ -229,7 +228,7 @@ def _run(args: argparse.Namespace) -> int:
             path, **_camera(args), depth_factor=args.depth_factor,
             frame_step=args.frame_step, rgb_topic=args.rgb_topic, depth_topic=args.depth_topic,
             info_topic=args.info_topic, groundtruth=args.groundtruth, max_frames=args.max_frames)
-    except UnknownCameraError as err:
+    except SourceError as err:  # its remedy in the CLI's options
         raise ValueError(err.cli_message()) from None
     recording = None
     if args.rerun is not None or args.rerun_viewer:

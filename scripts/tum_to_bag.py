@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from edgevo_jax.camera import CAMERAS, UnknownCameraError
+from edgevo_jax.camera import CAMERAS
 from edgevo_jax.datasets import load_sequence
-from edgevo_jax.datasets.source import DEPTH_TOPIC, INFO_TOPIC, RGB_TOPIC
+from edgevo_jax.datasets.source import DEPTH_TOPIC, INFO_TOPIC, RGB_TOPIC, UnknownCameraError
 
 
 def write_bag(seq, out: str | Path, *, frames: int | None = None, ros2: bool = False,

@@ -10,10 +10,10 @@ import shutil
 import pytest
 
 from edgevo_jax import cli
-from edgevo_jax.camera import CAMERAS, Camera, Intrinsics, UnknownCameraError
+from edgevo_jax.camera import CAMERAS, Camera, Intrinsics
 from edgevo_jax.cli import BUNDLED_CLIP
 from edgevo_jax.datasets import load_sequence, read_calibration
-from edgevo_jax.datasets.source import open_source
+from edgevo_jax.datasets.source import UnknownCameraError, open_source
 
 FR1 = CAMERAS["fr1"].camera
 
@@ -146,3 +146,6 @@ def test_api_camera_errors_name_the_arguments(renamed):
         load_sequence(renamed, camera=FR1._replace(readout_s=-0.02))
     with pytest.raises(ValueError, match="camera= must be a Camera or a preset name"):
         load_sequence(renamed, camera=FR1.intrinsics)
+    with pytest.raises(ValueError, match="groundtruth.txt: pass groundtruth= for bags and "
+                       "cameras only"):
+        open_source(renamed, camera="fr1", groundtruth=renamed / "groundtruth.txt")

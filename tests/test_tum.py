@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from edgevo_jax.camera import CAMERAS, Camera, Intrinsics, UnknownCameraError
+from edgevo_jax.camera import CAMERAS, Camera, Intrinsics
 from edgevo_jax.datasets import (
     camera_from_name,
     groundtruth_pose_at,
@@ -17,6 +17,7 @@ from edgevo_jax.datasets import (
     read_file_list,
     subsequence,
 )
+from edgevo_jax.datasets.source import UnknownCameraError
 
 FR1_XYZ = "rgbd_dataset_freiburg1_xyz_first10"
 FR1_DESK = "rgbd_dataset_freiburg1_desk_clip9"

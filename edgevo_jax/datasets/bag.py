@@ -21,10 +21,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..camera import Camera, Intrinsics, UnknownCameraError, checked_readout
+from ..camera import Camera, Intrinsics, checked_readout
 from ..io import read_trajectory
 from ..metrics import associate_timestamps
-from .source import DEPTH_TOPIC, INFO_TOPIC, RGB_TOPIC
+from .source import DEPTH_TOPIC, INFO_TOPIC, RGB_TOPIC, SourceError, UnknownCameraError
 from .tum import Distortion, camera_from_name, source_camera, undistort
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -260,8 +260,9 @@ def _scan(seq: BagSequence, reader: Any, *, info_topic: str, camera: Camera | No
     for topic, what, types in ((rgb_topic, "rgb", (IMAGE, COMPRESSED)),
                                (depth_topic, "depth", (IMAGE,))):
         if topic not in conns:
-            raise ValueError(f"bag {root} has no topic {topic} ({what} images); its image "
-                             f"topics: {', '.join(images) or 'none'} (pass --{what}-topic)")
+            raise SourceError(f"bag {root} has no topic {topic} ({what} images); its image "
+                              f"topics: {', '.join(images) or 'none'}",
+                              api=f"pass {what}_topic=", cli=f"pass --{what}-topic")
         if conns[topic].msgtype not in types:
             raise ValueError(f"{what} topic {topic} of {root} carries "
                              f"{conns[topic].msgtype}, not {' or '.join(types)}")

@@ -15,8 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from ..camera import Camera, Distortion, Intrinsics, UnknownCameraError
+from ..camera import Camera, Distortion, Intrinsics
 from ..io import read_trajectory
+from .source import UnknownCameraError
 from .tum import source_camera, undistort
 
 #: frames of a live run when no count is given (stop earlier with Ctrl-C)

@@ -27,12 +27,12 @@ from ..camera import (
     Camera,
     Distortion,
     Intrinsics,
-    UnknownCameraError,
     camera_preset,
     undistortion_maps,
 )
 from ..io import read_trajectory
 from ..metrics import associate_timestamps
+from .source import UnknownCameraError
 
 __all__ = [
     "EmptyDepthWarning",
