@@ -48,7 +48,7 @@ def _parser() -> argparse.ArgumentParser:
         "(freiburg1/2/3 or fr1/2/3); a bag's camera_info; a RealSense's own. One of these "
         "options replaces it.").add_mutually_exclusive_group()
     cam.add_argument("--camera", choices=list(CAMERAS), default=None,
-                     help="a preset (lens distortion removed, rolling shutter modelled): "
+                     help="a preset: "
                           + "; ".join(f"{k}: {v.about}" for k, v in CAMERAS.items()))
     cam.add_argument("--calibration", type=Path, default=None, metavar="FILE",
                      help="a text file of 4 numbers, fx fy cx cy (ETH3D's calibration.txt), "
