@@ -1,6 +1,8 @@
 """edgevo_jax: edge-based RGB-D visual odometry (EdgeVO) in JAX.
 
-The public API: ``Config`` and ``Intrinsics`` (what a run needs), ``Odometry`` (the
+The public API: ``Config`` and ``Intrinsics`` (what a run needs; ``Camera``: intrinsics
+with lens distortion and rolling-shutter readout, for ``load_sequence(camera=...)``, which
+also takes a preset name of ``camera.CAMERAS``), ``Odometry`` (the
 streaming tracker; ``FrameResult`` per frame), ``run`` (a whole sequence, with its
 trajectory file) and ``evaluate`` (many sequences under many configurations, batched),
 ``load_sequence`` (TUM-style folders), ``summarise`` (a run's statistics and ATE / RPE),
@@ -15,7 +17,7 @@ with ``geometry``, ``camera``, ``config`` / ``derive``, ``solvers``, ``metrics``
 ``datasets``, ``viz`` and ``cli`` beside them.
 """
 
-from .camera import Intrinsics
+from .camera import Camera, Intrinsics
 from .config import Config
 from .datasets.tum import load_sequence
 from .determinism import enable_batch_exact
@@ -25,6 +27,6 @@ from .pipeline.odometry import FrameResult, Odometry
 from .pipeline.run import run_sequence as run
 from .pipeline.run import summarise
 
-__all__ = ["Config", "FrameResult", "Intrinsics", "Odometry", "Pose", "enable_batch_exact",
-           "evaluate", "load_sequence", "run", "summarise"]
+__all__ = ["Camera", "Config", "FrameResult", "Intrinsics", "Odometry", "Pose",
+           "enable_batch_exact", "evaluate", "load_sequence", "run", "summarise"]
 __version__ = "0.1.0"

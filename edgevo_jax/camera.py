@@ -1,4 +1,6 @@
-"""Pinhole camera with inverse-depth back-projection, and undistortion maps.
+"""Pinhole camera with inverse-depth back-projection, undistortion maps, and the cameras a
+source can have (``Camera``: pinhole, lens distortion, rolling shutter) with the one table of
+presets (``CAMERAS``).
 
 Conventions (DESIGN.md): pixels (u, v) = (column, row) with the origin at the centre of the
 top-left pixel; rho = 1 / z. Device-side arrays of many points are struct-of-arrays, (3, K)
@@ -7,6 +9,7 @@ points and (2, K) pixels: XLA on CPU vectorises over the last axis.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import cv2
@@ -91,3 +94,92 @@ def undistortion_maps(
         intr.matrix(), np.asarray(dist, np.float64), None, intr.matrix(), (width, height),
         cv2.CV_32FC1,
     )
+
+
+Distortion = tuple[float, ...]
+#: Lengths of an OpenCV distortion vector (k1 k2 p1 p2 [k3 [k4 k5 k6 [s1..s4 [tx ty]]]]).
+DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
+
+
+class Camera(NamedTuple):
+    """A source's colour camera (host side): ``intrinsics``, the pinhole of the images the
+    tracker sees; ``distortion``, the raw images' lens distortion as OpenCV coefficients
+    (k1 k2 p1 p2 [k3 ...]; None: the images are undistorted already), which the source
+    removes (``undistortion_maps``) before tracking; ``readout_s``, the rolling shutter's
+    readout time in seconds (0: a global shutter; ``Config.readout_s`` None takes it).
+
+    Device code takes the 4 numbers of ``intrinsics`` only (an ``Intrinsics`` pytree); the
+    distortion never leaves the host."""
+
+    intrinsics: Intrinsics
+    distortion: Distortion | None = None
+    readout_s: float = 0.0
+
+    def validate(self, *, width: int | None = None, height: int | None = None) -> Camera:
+        """The camera with float values, or ValueError: intrinsics as ``Intrinsics.validate``,
+        distortion of 4, 5, 8, 12 or 14 finite coefficients, readout finite and >= 0."""
+        intr = Intrinsics(*(float(v) for v in self.intrinsics)).validate(width=width,
+                                                                         height=height)
+        dist = None
+        if self.distortion is not None:
+            dist = tuple(float(v) for v in self.distortion)
+            if len(dist) not in DISTORTION_LENGTHS or not all(math.isfinite(v) for v in dist):
+                raise ValueError("distortion must be 4, 5, 8, 12 or 14 finite OpenCV "
+                                 f"coefficients (k1 k2 p1 p2 [k3 ...]), got {dist}")
+        return Camera(intr, dist, checked_readout(self.readout_s))
+
+
+def checked_readout(readout_s: float) -> float:
+    """``readout_s`` (a rolling shutter's readout time, s) as a float; ValueError unless it is
+    finite and >= 0 (0: a global shutter)."""
+    readout = float(readout_s)
+    if not (math.isfinite(readout) and readout >= 0):
+        raise ValueError(f"readout_s must be finite and >= 0 (0: a global shutter), got "
+                         f"{readout_s}")
+    return readout
+
+
+#: Rolling-shutter readout time (s) of the TUM benchmark's colour cameras (Kinect-type sensors
+#: reading their rows one after another): 20 ms, measured without ground truth by
+#: ``scripts/readout_time.py`` on fr1 and fr3 clips (docs/decisions.md).
+FREIBURG_READOUT_S = 0.020
+
+
+class Preset(NamedTuple):
+    """A named camera of ``CAMERAS``: the ``camera`` and what it is (``about``)."""
+
+    camera: Camera
+    about: str
+
+
+#: The camera presets, by the name ``edgevo run --camera`` and ``load_sequence(camera=...)``
+#: take. fr1 / fr2 / fr3: the TUM RGB-D benchmark's factory calibrations (the folder names
+#: freiburg1/2/3 pick them too); fr3's images are undistorted already. kinect: the default
+#: calibration TUM gives for its Kinect (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/
+#: file_formats, "ROS default": fx = fy = 525, cx = 319.5, cy = 239.5, no distortion) for a
+#: Kinect-type camera without a calibration of its own; its readout is the Freiburg cameras'
+#: 20 ms, as those are Kinect-type sensors of the same rolling-shutter design (set
+#: ``Config.readout_s`` for another). ETH3D sequences bring their own calibration.txt.
+CAMERAS: dict[str, Preset] = {
+    "fr1": Preset(Camera(Intrinsics(517.3, 516.5, 318.6, 255.3),
+                         (0.2624, -0.9531, -0.0054, 0.0026, 1.1633), FREIBURG_READOUT_S),
+                  "TUM RGB-D freiburg1: its lens distortion and 20 ms rolling shutter"),
+    "fr2": Preset(Camera(Intrinsics(520.9, 521.0, 325.1, 249.7),
+                         (0.2312, -0.7849, -0.0033, -0.0001, 0.9172), FREIBURG_READOUT_S),
+                  "TUM RGB-D freiburg2: its lens distortion and 20 ms rolling shutter"),
+    "fr3": Preset(Camera(Intrinsics(535.4, 539.2, 320.1, 247.6), None, FREIBURG_READOUT_S),
+                  "TUM RGB-D freiburg3: images undistorted already, 20 ms rolling shutter"),
+    "kinect": Preset(Camera(Intrinsics(525.0, 525.0, 319.5, 239.5), None, FREIBURG_READOUT_S),
+                     "a Kinect's default calibration (fx = fy = 525, cx = 319.5, cy = 239.5, "
+                     "no distortion), 20 ms rolling shutter"),
+}
+
+
+def camera_preset(name: str) -> Camera:
+    """The camera of preset ``name`` (a key of ``CAMERAS``); ValueError listing the presets
+    for any other name."""
+    if name not in CAMERAS:
+        raise ValueError(f"camera={name!r} is not a preset; the presets are "
+                         f"{', '.join(CAMERAS)} (or pass a Camera)")
+    return CAMERAS[name].camera
+

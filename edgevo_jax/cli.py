@@ -13,6 +13,7 @@ from pathlib import Path
 
 STARTED = time.perf_counter()  # the command's start (the start-up it reports counts from it)
 
+from .camera import CAMERAS  # noqa: E402
 from .datasets import BUNDLED_CLIP  # noqa: E402
 from .datasets.source import DEPTH_TOPIC, INFO_TOPIC, RGB_TOPIC  # noqa: E402
 from .io import json_safe  # noqa: E402
@@ -34,15 +35,29 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--stats", type=Path, default=None, help="write run statistics as JSON")
     run.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                      help="override a Config field (repeatable), e.g. --set max_edges=1024")
-    run.add_argument("--max-frames", type=int, default=None, help="stop after this many frames")
-    run.add_argument("--depth-factor", type=float, default=5000.0,
+    run.add_argument("--max-frames", type=_positive_int, default=None, metavar="N",
+                     help="stop after N frames (N >= 1)")
+    run.add_argument("--depth-factor", type=_positive_float, default=5000.0,
                      help="depth PNG units per metre (TUM: 5000)")
-    run.add_argument("--frame-step", type=int, default=1, metavar="K",
+    run.add_argument("--frame-step", type=_positive_int, default=1, metavar="K",
                      help="keep every K-th line of rgb.txt and depth.txt (1/K of the frame "
                           "rate)")
-    run.add_argument("--intrinsics", type=float, nargs=4, default=None,
+    cam = run.add_argument_group(
+        "camera", "Default: a folder's calibration.txt, else the camera its name names "
+        "(freiburg1/2/3 or fr1/2/3); a bag's camera_info; a RealSense's own. One of these "
+        "options replaces it.").add_mutually_exclusive_group()
+    cam.add_argument("--camera", choices=list(CAMERAS), default=None,
+                     help="a preset: "
+                          + "; ".join(f"{k}: {v.about}" for k, v in CAMERAS.items()))
+    cam.add_argument("--calibration", type=Path, default=None, metavar="FILE",
+                     help="a text file of 4 numbers, fx fy cx cy (ETH3D's calibration.txt), "
+                          "or 9, fx fy cx cy k1 k2 p1 p2 k3 (OpenCV distortion of the raw "
+                          "images, removed before tracking); a global shutter unless "
+                          "--set readout_s=SECONDS")
+    cam.add_argument("--intrinsics", type=float, nargs=4, default=None,
                      metavar=("FX", "FY", "CX", "CY"),
-                     help="override the camera (then no undistortion is applied)")
+                     help="a pinhole camera of undistorted images with a global shutter (for "
+                          "lens distortion use --calibration)")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     run.add_argument("--rgb-topic", default=RGB_TOPIC, help=f"bags: rgb images ({RGB_TOPIC})")
     run.add_argument("--depth-topic", default=DEPTH_TOPIC,
@@ -153,20 +168,67 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
-def _run(args: argparse.Namespace) -> int:
+def _positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return value
+
+
+def _camera(args: argparse.Namespace) -> dict:
+    """``open_source``'s camera argument from ``--camera``, ``--calibration`` (``camera=``) or
+    ``--intrinsics`` (``intrinsics=``); {} when none is given."""
     from .camera import Intrinsics
+    from .datasets.tum import read_calibration
+
+    if args.camera is not None:
+        return {"camera": args.camera}
+    if args.intrinsics is not None:
+        try:
+            return {"intrinsics": Intrinsics(*args.intrinsics).validate()}
+        except ValueError as err:
+            raise ValueError(f"--intrinsics {' '.join(f'{v:g}' for v in args.intrinsics)}: "
+                             f"{err}") from None
+    if args.calibration is None:
+        return {}
+    if not args.calibration.is_file():
+        raise FileNotFoundError(f"--calibration file not found: {args.calibration}")
+    try:
+        return {"camera": read_calibration(args.calibration)}
+    except ValueError as err:
+        raise ValueError(f"--calibration {err}") from None
+
+
+def _run(args: argparse.Namespace) -> int:
     from .config import Config
-    from .datasets.source import open_source
+    from .datasets.source import SourceError, open_source
     from .pipeline.run import enable_compilation_cache, run_sequence, summarise
 
     config = Config().with_overrides(args.overrides)
     params = _read_params(args.params, config) if args.params is not None else None
     path = args.sequence if args.sequence is not None else BUNDLED_CLIP
-    seq = open_source(
-        path, intrinsics=None if args.intrinsics is None else Intrinsics(*args.intrinsics),
-        depth_factor=args.depth_factor, frame_step=args.frame_step, rgb_topic=args.rgb_topic,
-        depth_topic=args.depth_topic, info_topic=args.info_topic, groundtruth=args.groundtruth,
-        max_frames=args.max_frames)
+    try:
+        seq = open_source(
+            path, **_camera(args), depth_factor=args.depth_factor,
+            frame_step=args.frame_step, rgb_topic=args.rgb_topic, depth_topic=args.depth_topic,
+            info_topic=args.info_topic, groundtruth=args.groundtruth, max_frames=args.max_frames)
+    except SourceError as err:  # its remedy in the CLI's options
+        raise ValueError(err.cli_message()) from None
     recording = None
     if args.rerun is not None or args.rerun_viewer:
         from .viz.recording import RerunRecording

@@ -11,12 +11,14 @@ stamps the folder's timestamps. Needs ``pip install 'edgevo_jax[ros]'``.
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
 
+from edgevo_jax.camera import CAMERAS
 from edgevo_jax.datasets import load_sequence
-from edgevo_jax.datasets.source import DEPTH_TOPIC, INFO_TOPIC, RGB_TOPIC
+from edgevo_jax.datasets.source import DEPTH_TOPIC, INFO_TOPIC, RGB_TOPIC, UnknownCameraError
 
 
 def write_bag(seq, out: str | Path, *, frames: int | None = None, ros2: bool = False,
@@ -88,7 +90,9 @@ def write_bag(seq, out: str | Path, *, frames: int | None = None, ros2: bool = F
     return out
 
 
-def main() -> None:
+def main() -> int:
+    """The command: 0 when the bag is written, 2 (and a one-line message) when rosbags is
+    missing or the folder is bad."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("sequence", type=Path, help="TUM sequence folder")
     ap.add_argument("out", type=Path, help="the bag (ROS1: a .bag file; ROS2: a folder)")
@@ -96,12 +100,29 @@ def main() -> None:
     ap.add_argument("--ros2", action="store_true", help="write a ROS2 bag (sqlite3)")
     ap.add_argument("--depth-encoding", choices=("32FC1", "16UC1"), default="32FC1")
     ap.add_argument("--rgb-encoding", choices=("rgb8", "bgr8"), default="rgb8")
+    ap.add_argument("--camera", choices=list(CAMERAS), default=None,
+                    help="the folder's camera when its name names none (a preset)")
     args = ap.parse_args()
-    seq = load_sequence(args.sequence)
+    try:
+        import rosbags  # noqa: F401  (before any work: the writer needs it)
+    except ImportError:
+        print('tum_to_bag.py: error: writing ROS bags needs the rosbags package: '
+              'pip install "edgevo_jax[ros]"', file=sys.stderr)
+        return 2
+    try:
+        seq = load_sequence(args.sequence, camera=args.camera)
+    except UnknownCameraError as err:
+        print(f"tum_to_bag.py: error: {err.what}: pass --camera ({', '.join(CAMERAS)})",
+              file=sys.stderr)
+        return 2
+    except (FileNotFoundError, ValueError) as err:
+        print(f"tum_to_bag.py: error: {err}", file=sys.stderr)
+        return 2
     path = write_bag(seq, args.out, frames=args.frames, ros2=args.ros2,
                      rgb_encoding=args.rgb_encoding, depth_encoding=args.depth_encoding)
     print(f"wrote {path}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

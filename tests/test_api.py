@@ -9,8 +9,8 @@ import sys
 
 import edgevo_jax
 
-API = ["Config", "FrameResult", "Intrinsics", "Odometry", "Pose", "enable_batch_exact",
-       "evaluate", "load_sequence", "run", "summarise"]
+API = ["Camera", "Config", "FrameResult", "Intrinsics", "Odometry", "Pose",
+       "enable_batch_exact", "evaluate", "load_sequence", "run", "summarise"]
 #: the leading data arguments each API function takes positionally; everything after is an
 #: option, keyword-only
 POSITIONAL = {"Odometry": ("config", "intrinsics"), "evaluate": ("sequences", "configs"),

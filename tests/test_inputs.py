@@ -1,9 +1,10 @@
 """Bad inputs: each one gives a clear error naming the file and the problem before any JAX code
-runs (or, for an all-zero depth frame, a warning naming it while the run goes on).
+runs (or, for an all-zero depth frame, a warning naming it while the run goes on); bad options
+of ``edgevo run`` and of scripts/tum_to_bag.py, likewise.
 
 The cases are real frames of the bundled fr1/xyz clip copied into tmp_path and damaged.
 ``python tests/test_inputs.py`` prints the catalogue of what a user of ``edgevo`` sees for each
-(docs/errors.md is its output).
+(docs/errors.md is its output; its ROS bag section needs rosbags).
 """
 
 from __future__ import annotations
@@ -22,13 +23,14 @@ from unittest import mock
 import cv2
 import numpy as np
 import pytest
+from conftest import load_script
 
 from edgevo_jax import cli
 from edgevo_jax.camera import Intrinsics
 from edgevo_jax.cli import BUNDLED_CLIP
 from edgevo_jax.config import Config
 from edgevo_jax.datasets import read_file_list
-from edgevo_jax.datasets.tum import EmptyDepthWarning, TumSequence, load_sequence
+from edgevo_jax.datasets.tum import EmptyDepthWarning, TumSequence, _jpeg_header, load_sequence
 from edgevo_jax.io import TrajectoryWriter
 
 NAME = "rgbd_dataset_freiburg1_xyz_bad"  # the camera (freiburg1) comes from the name
@@ -106,6 +108,36 @@ def _truncated(root):
     path = _frame(root, "depth", 3)
     data = path.read_bytes()
     path.write_bytes(data[: len(data) // 2])
+    return root, {}, path
+
+
+def _as_jpeg(root: Path) -> Path:
+    """The copy's rgb images as JPEG files (rgb.txt rewritten): a folder of user data."""
+    path = root / "rgb.txt"
+    lines = []
+    for line in _lines(path):
+        if not line.startswith("#"):
+            t, rel = line.split()
+            img = cv2.imread(str(root / rel), cv2.IMREAD_COLOR)
+            (root / rel).unlink()
+            rel = rel.replace(".png", ".jpg")
+            cv2.imwrite(str(root / rel), img)
+            line = f"{t} {rel}\n"
+        lines.append(line)
+    path.write_text("".join(lines))
+    return root
+
+
+def _jpeg_truncated(root):
+    path = _frame(_as_jpeg(root), "rgb", 3)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    return root, {}, path
+
+
+def _jpeg_random_bytes(root):
+    path = _frame(_as_jpeg(root), "rgb", 4)
+    path.write_bytes(np.random.default_rng(0).bytes(5000))
     return root, {}, path
 
 
@@ -199,6 +231,10 @@ CASES = [
     Case("corrupt PNG (random bytes)", _random_bytes, ValueError,
          r"cannot decode rgb image .*not a PNG file"),
     Case("truncated PNG", _truncated, ValueError, r"cannot decode depth image .*truncated"),
+    Case("truncated JPEG", _jpeg_truncated, ValueError,
+         r"cannot decode rgb image .*truncated JPEG \(no end-of-image marker"),
+    Case("corrupt JPEG (random bytes)", _jpeg_random_bytes, ValueError,
+         r"cannot decode rgb image .*not a JPEG file"),
     Case("8-bit depth", _depth_as(lambda d: (d // 256).astype(np.uint8)), ValueError,
          r"must be single-channel 16-bit, got 8-bit, 1 channel"),
     Case("3-channel depth", _depth_as(lambda d: np.dstack([d, d, d])), ValueError,
@@ -235,6 +271,49 @@ CASES = [
          ValueError, "zero quaternion"),
     Case("no camera in the folder name", _no_camera, ValueError,
          "cannot tell the camera from the name"),
+]
+
+
+@dataclass(frozen=True)
+class OptionCase:
+    """A bad option of ``edgevo run`` on the good copy: ``argv(root)`` are the arguments after
+    the folder; what the error must say (argparse's own errors exit with SystemExit(2))."""
+
+    name: str
+    argv: Callable[[Path], list[str]]
+    problem: str
+
+
+def _calibration(text: str):
+    def argv(root):
+        path = root.parent / "mycamera.txt"
+        path.write_text(text)
+        return ["--calibration", str(path)]
+    return argv
+
+
+OPTION_CASES = [
+    OptionCase("--max-frames 0", lambda root: ["--max-frames", "0"],
+               "argument --max-frames: must be at least 1, got 0"),
+    OptionCase("--frame-step 0", lambda root: ["--frame-step", "0"],
+               "argument --frame-step: must be at least 1, got 0"),
+    OptionCase("--depth-factor 0", lambda root: ["--depth-factor", "0"],
+               "argument --depth-factor: must be a finite number > 0, got 0"),
+    OptionCase("unknown --camera", lambda root: ["--camera", "freiburg1"],
+               r"argument --camera: invalid choice: 'freiburg1' \(choose from"),
+    OptionCase("--camera with --intrinsics",
+               lambda root: ["--camera", "fr1", "--intrinsics", "517.3", "516.5", "318.6", "255.3"],
+               "argument --intrinsics: not allowed with argument --camera"),
+    OptionCase("--groundtruth with a folder (it reads its own)",
+               lambda root: ["--groundtruth", str(root / "groundtruth.txt")],
+               r"a folder reads its own groundtruth.txt: pass --groundtruth for bags and "
+               "cameras only"),
+    OptionCase("--calibration file missing", lambda root: ["--calibration", "nowhere.txt"],
+               "--calibration file not found: nowhere.txt"),
+    OptionCase("--calibration with 7 numbers", _calibration("517.3 516.5 318.6 255.3 0.26 0.1 0\n"),
+               r"--calibration .*mycamera.txt: expected 4 numbers \(fx fy cx cy\) or 9 .*got 7"),
+    OptionCase("--calibration with a word", _calibration("fx=517.3 516.5 318.6 255.3\n"),
+               r"--calibration .*mycamera.txt: .*must be numbers, got 'fx=517.3"),
 ]
 
 
@@ -279,6 +358,54 @@ def test_cli_reports_bad_input_before_tracking(clip, case, monkeypatch, capsys):
     err = capsys.readouterr().err
     assert err.startswith("edgevo: error: ") and str(names) in err, err
     assert re.search(case.problem, err), err
+
+
+@pytest.mark.parametrize("case", OPTION_CASES, ids=[c.name for c in OPTION_CASES])
+def test_bad_options_stop_with_the_option_named(clip, case, monkeypatch, capsys):
+    def no_run(*args, **kw):
+        raise AssertionError("run_sequence called with a bad option")
+
+    monkeypatch.setattr("edgevo_jax.pipeline.run.run_sequence", no_run)
+    rc, text = _user_sees(["run", str(clip), *case.argv(clip), "--out",
+                           str(clip.parent / "t.txt"), "--no-progress"])
+    assert rc == 2 and re.search(case.problem, text), text
+    assert "Traceback" not in text and "nan" not in text
+
+
+def test_a_jpeg_folder_is_checked_from_its_headers(clip):
+    """JPEG rgb images: size and channels read from the frame header (no decoding), the same
+    as decoding gives; a truncated one stops loading, or (checks off) its own decode."""
+    _as_jpeg(clip)
+    seq = load_sequence(clip)
+    assert seq.rgb_files[0].suffix == ".jpg"
+    assert _jpeg_header(seq.rgb_files[0], "rgb") == (640, 480, "8-bit, 3 channels")
+    assert seq.load_frame(2)[0].shape == (480, 640, 3)
+    path = seq.rgb_files[2]
+    path.write_bytes(path.read_bytes()[:-2])  # all but its EOI marker
+    with pytest.raises(ValueError, match=rf"{re.escape(str(path))}: truncated JPEG"):
+        load_sequence(clip)
+    unchecked = load_sequence(clip, check_images=False)
+    unchecked.decode_frame(1)
+    with pytest.raises(ValueError, match=rf"{re.escape(str(path))}: truncated JPEG"):
+        unchecked.decode_frame(2)
+
+
+def _tum_to_bag_without_rosbags(out: Path) -> tuple[int, str]:
+    """scripts/tum_to_bag.py run where rosbags cannot be imported: status, stderr + stdout."""
+    to_bag = load_script("tum_to_bag")
+    err, stdout = io.StringIO(), io.StringIO()
+    with (mock.patch.dict(sys.modules, {"rosbags": None}),
+          mock.patch.object(sys, "argv", ["tum_to_bag.py", str(BUNDLED_CLIP), str(out)]),
+          contextlib.redirect_stderr(err), contextlib.redirect_stdout(stdout)):
+        rc = to_bag.main()
+    return rc, err.getvalue() + stdout.getvalue()
+
+
+def test_tum_to_bag_without_rosbags_says_what_to_install(tmp_path):
+    rc, text = _tum_to_bag_without_rosbags(tmp_path / "x.bag")
+    assert rc == 2 and text == ('tum_to_bag.py: error: writing ROS bags needs the rosbags '
+                                'package: pip install "edgevo_jax[ros]"\n'), text
+    assert not (tmp_path / "x.bag").exists()
 
 
 def test_damaged_middle_of_a_png_stops_at_its_frame(clip):
@@ -397,7 +524,10 @@ def _user_sees(argv: list[str]) -> tuple[int, str]:
           warnings.catch_warnings()):
         warnings.resetwarnings()  # Python's defaults, as a user's shell has them
         warnings.simplefilter("default")
-        rc = cli.main(argv)
+        try:
+            rc = cli.main(argv)
+        except SystemExit as stop:  # argparse's errors
+            rc = stop.code
     return rc, (err.getvalue() + out.getvalue()).replace(str(_REPO) + "/", "")
 
 
@@ -406,27 +536,85 @@ _HEADER = """\
 # What `edgevo` says about bad inputs
 
 Each bad input below was made from real frames of the bundled fr1/xyz clip, copied and
-damaged, and run through `edgevo run` (or `edgevo eval`); the text is what the command printed
-(paths shortened: `DIR` is the folder holding the damaged copy, `OUT` the output folder).
-Everything here is generated by `python tests/test_inputs.py > docs/errors.md`, and
-tests/test_inputs.py checks each message names the file (and line) and the problem.
+damaged, and run through `edgevo run` (or `edgevo eval`, `scripts/tum_to_bag.py`); the text is
+what the command printed (paths shortened: `DIR` is the folder holding the damaged copy, `OUT`
+the output folder; `--out OUT/t.txt --no-progress` left out of the commands). Everything here
+is generated by `python tests/test_inputs.py > docs/errors.md`, and tests/test_inputs.py,
+tests/test_cameras.py and tests/test_sources.py check each message names the file (and line),
+the option or the topic, and the problem.
 
 Everything that can be checked without tracking is checked by `load_sequence` before the
-tracker starts (exit status 2, nothing written): folder, lists, ground truth, intrinsics, and
-every associated image's PNG header and end (present, whole, same size, 16-bit single-channel
-depth), plus a full decode of the first frame. A PNG damaged *inside* (header and end whole)
-is only found when its frame is decoded: the run stops there and the poses done so far stay in
-`<out>.part` (as after Ctrl-C). An all-zero depth frame is no error: it warns, naming the file,
-and the run goes on. A missing `groundtruth.txt` is no error either: the run goes on and the
-summary says `ATE n/a (no ground truth)`.
+tracker starts (exit status 2, nothing written): folder, lists, ground truth, camera, and
+every associated image's PNG or JPEG header and end (present, whole, same size, 16-bit
+single-channel depth), plus a full decode of the first frame. An image damaged *inside*
+(header and end whole) is only found when its frame is decoded: the run stops there and the
+poses done so far stay in `<out>.part` (as after Ctrl-C). An all-zero depth frame is no error:
+it warns, naming the file, and the run goes on. A missing `groundtruth.txt` is no error either:
+the run goes on and the summary says `ATE n/a (no ground truth)`. Options are checked before
+anything is read (argparse's errors print the usage first). A ROS bag is read through once
+(every message's header) before tracking, so a bad bag stops there too.
 """
+
+
+def _shown(argv: list[str], folder: Path, base: Path) -> str:
+    """The command as the catalogue shows it: no --out and --no-progress, paths shortened."""
+    keep: list[str] = []
+    for a in argv:
+        if keep and keep[-1] == "--out":
+            keep.pop()
+        elif a != "--no-progress":
+            keep.append(a)
+    return _short("$ edgevo " + " ".join(keep), folder, base)
+
+
+def _short(text: str, folder: Path, base: Path) -> str:
+    return (text.replace(str(folder), "DIR").replace(str(base), "OUT")
+            .replace(str(_REPO) + "/", ""))
+
+
+def _bag_rows(base: Path) -> list[tuple[str, str, int, str]]:
+    """Bad bags (written from the bundled clip with scripts/tum_to_bag.py; needs rosbags)."""
+    to_bag = load_script("tum_to_bag")
+    folder = base / "bags"
+    folder.mkdir()
+    seq = load_sequence(BUNDLED_CLIP)
+    ok = to_bag.write_bag(seq, folder / "ok.bag", frames=2)
+    (folder / "junk.bag").write_bytes(b"not a bag")
+    cases = [
+        ("bag without the rgb topic", [str(ok), "--rgb-topic", "/camera/rgb/image_raw"]),
+        ("depth topic of another message type",
+         [str(ok), "--depth-topic", "/camera/rgb/camera_info"]),
+        ("rgb and depth of different sizes",
+         [str(to_bag.write_bag(seq, folder / "small.bag", frames=2, depth_size=(320, 240)))]),
+        ("bag without camera_info (and no camera given)",
+         [str(to_bag.write_bag(seq, folder / "blind.bag", frames=2, camera_info=False))]),
+        ("unsupported rgb encoding",
+         [str(to_bag.write_bag(seq, folder / "yuv.bag", frames=2, rgb_encoding="yuv422"))]),
+        ("--groundtruth file missing", [str(ok), "--groundtruth", str(folder / "gt.txt")]),
+        ("missing bag", [str(folder / "missing.bag")]),
+        ("not a bag", [str(folder / "junk.bag")]),
+    ]
+    rows = []
+    for name, args in cases:
+        argv = ["run", *args, "--out", str(base / "t.txt"), "--no-progress"]
+        rc, text = _user_sees(argv)
+        rows.append((name, _shown(argv, folder, base), rc, _short(text, folder, base)))
+    return rows
 
 
 def catalogue() -> str:
     """Markdown: each bad input and the message ``edgevo run`` prints for it."""
     import tempfile
 
-    rows = []
+    groups: dict[str, list[tuple[str, str, int, str]]] = {
+        "Folders and images": [], "Options of `edgevo run`": [], "ROS bags": [],
+        "Live cameras and scripts": []}
+
+    def add(group: str, name: str, argv: list[str], folder: Path, base: Path) -> None:
+        rc, text = _user_sees(argv)
+        groups[group].append((name, _shown(argv, folder, base), rc,
+                              _short(text, folder, base)))
+
     with tempfile.TemporaryDirectory() as tmp:
         base = Path(tmp)
         for n, case in enumerate(CASES):
@@ -435,29 +623,25 @@ def catalogue() -> str:
             argv = ["run", str(path), "--out", str(base / "t.txt"), "--no-progress"]
             if "intrinsics" in kwargs:
                 argv += ["--intrinsics", *(str(v) for v in kwargs["intrinsics"])]
-            rc, text = _user_sees(argv)
-            rows.append((case.name, " ".join(argv[1:2] + argv[4:]), rc,
-                         text.replace(str(base / str(n)), "DIR")))
+            add("Folders and images", case.name, argv, base / str(n), base)
         root = copy_clip(base / "zero" / NAME)
         _zero_depth(root, 2)
-        argv = ["run", str(root), "--out", str(base / "t.txt"), "--no-progress"]
-        rc, text = _user_sees(argv)
-        rows.append(("all-zero depth frame (a warning; the run goes on)", str(root), rc,
-                     text.replace(str(base / "zero"), "DIR").replace(str(base), "OUT")))
+        add("Folders and images", "all-zero depth frame (a warning; the run goes on)",
+            ["run", str(root), "--out", str(base / "t.txt"), "--no-progress"],
+            base / "zero", base)
         root = copy_clip(base / "nogt" / NAME, groundtruth=False)
-        argv = ["run", str(root), "--out", str(base / "t.txt"), "--no-progress"]
-        rc, text = _user_sees(argv)
-        rows.append(("no groundtruth.txt (the run goes on without ATE)", str(root), rc,
-                     text.replace(str(base / "nogt"), "DIR").replace(str(base), "OUT")))
+        add("Folders and images", "no groundtruth.txt (the run goes on without ATE)",
+            ["run", str(root), "--out", str(base / "t.txt"), "--no-progress"],
+            base / "nogt", base)
         root = copy_clip(base / "mid" / NAME)
         path = _frame(root, "depth", 3)
         data = bytearray(path.read_bytes())
         data[len(data) // 2 : len(data) // 2 + 2000] = bytes(2000)
         path.write_bytes(bytes(data))
-        rc, text = _user_sees(["run", str(root), "--out", str(base / "t.txt"), "--no-progress"])
-        rows.append(("PNG damaged inside (header and end whole): found when its frame is "
-                     "decoded, the run stops there", str(root), rc,
-                     text.replace(str(base / "mid"), "DIR").replace(str(base), "OUT")))
+        add("Folders and images", "PNG damaged inside (header and end whole): found when its "
+            "frame is decoded, the run stops there",
+            ["run", str(root), "--out", str(base / "t.txt"), "--no-progress"],
+            base / "mid", base)
         root = copy_clip(base / "int" / NAME)
         decode = TumSequence.decode_frame
 
@@ -467,18 +651,40 @@ def catalogue() -> str:
             return decode(self, i)
 
         with mock.patch.object(TumSequence, "decode_frame", interrupt_at_3):
-            rc, text = _user_sees(["run", str(root), "--out", str(base / "t.txt"),
-                                   "--no-progress"])
-        rows.append(("Ctrl-C while frame 3 is decoded", str(root), rc,
-                     text.replace(str(base / "int"), "DIR").replace(str(base), "OUT")))
+            add("Folders and images", "Ctrl-C while frame 3 is decoded",
+                ["run", str(root), "--out", str(base / "t.txt"), "--no-progress"],
+                base / "int", base)
         est = base / "est.txt"
         est.write_text("1305031102.175304 0 0 0 0 0 0 1\n1305031102.211214 0 inf 0 0 0 0 1\n")
-        rc, text = _user_sees(["eval", str(BUNDLED_CLIP / "groundtruth.txt"), str(est)])
-        rows.append(("`edgevo eval` of an estimate with a non-finite value", str(est), rc,
-                     text.replace(str(base), "OUT")))
+        add("Folders and images", "`edgevo eval` of an estimate with a non-finite value",
+            ["eval", str(BUNDLED_CLIP / "groundtruth.txt"), str(est)], base / "-", base)
+        for n, case in enumerate(OPTION_CASES):
+            root = copy_clip(base / f"o{n}" / NAME)
+            add("Options of `edgevo run`", case.name,
+                ["run", str(root), *case.argv(root), "--out", str(base / "t.txt"),
+                 "--no-progress"], base / f"o{n}", base)
+        try:
+            import rosbags  # noqa: F401
+        except ImportError:
+            groups["ROS bags"] = [("(not generated: rosbags is not installed here)", "", 0,
+                                   "")]
+        else:
+            groups["ROS bags"] = _bag_rows(base)
+        with mock.patch.dict(sys.modules, {"pyrealsense2": None}):
+            add("Live cameras and scripts", "a live RealSense without pyrealsense2",
+                ["run", "realsense", "--max-frames", "30"], base / "-", base)
+        rc, text = _tum_to_bag_without_rosbags(base / "x.bag")
+        groups["Live cameras and scripts"].append((
+            "scripts/tum_to_bag.py without rosbags",
+            _short(f"$ python scripts/tum_to_bag.py {BUNDLED_CLIP} {base / 'x.bag'}",
+                   base / "-", base),
+            rc, text))
     parts = [_HEADER]
-    for name, _, rc, text in rows:
-        parts.append(f"## {name}\n\nexit status {rc}\n\n```\n{text.rstrip()}\n```\n")
+    for group, rows in groups.items():
+        parts.append(f"## {group}\n")
+        for name, shown, rc, text in rows:
+            body = "\n".join(x for x in (shown, text.rstrip()) if x)
+            parts.append(f"### {name}\n\nexit status {rc}\n\n```\n{body}\n```\n")
     return "\n".join(parts).rstrip() + "\n"
 
 

@@ -88,7 +88,9 @@ def test_bad_bags_name_the_topic(clip, tmp_path, capsys):
     bag = to_bag.write_bag(clip, tmp_path / "ok.bag", frames=2)
     err = _cli_error(capsys, str(bag), "--rgb-topic", "/camera/rgb/image_raw")
     assert "no topic /camera/rgb/image_raw (rgb images)" in err
-    assert "/camera/rgb/image_color" in err  # the topics it has
+    assert "/camera/rgb/image_color" in err and "pass --rgb-topic" in err  # the topics it has
+    with pytest.raises(ValueError, match=r"image_raw \(rgb images\).*: pass rgb_topic=$"):
+        open_source(bag, rgb_topic="/camera/rgb/image_raw")  # the API names its argument
     err = _cli_error(capsys, str(bag), "--depth-topic", "/camera/rgb/camera_info")
     assert "/camera/rgb/camera_info" in err and "sensor_msgs/msg/CameraInfo" in err
     small = to_bag.write_bag(clip, tmp_path / "small.bag", frames=2, depth_size=(320, 240))
@@ -121,7 +123,8 @@ def test_calibration_txt_gives_the_camera(clip, tmp_path):
     given = load_sequence(BUNDLED_CLIP, intrinsics=seq.intrinsics)
     assert np.array_equal(_poses(seq), _poses(given))
     (root / "calibration.txt").write_text("# fx fy cx cy\n517.3 516.5 318.6\n")
-    with pytest.raises(ValueError, match="calibration.txt: expected one line 'fx fy cx cy'"):
+    with pytest.raises(ValueError, match=r"calibration.txt: expected 4 numbers \(fx fy cx cy\) "
+                       r"or 9 .*got 3"):
         read_calibration(root / "calibration.txt")
 
 

@@ -9,15 +9,15 @@ import cv2
 import numpy as np
 import pytest
 
-from edgevo_jax.camera import Intrinsics
+from edgevo_jax.camera import CAMERAS, Camera, Intrinsics
 from edgevo_jax.datasets import (
-    FREIBURG_CAMERAS,
     camera_from_name,
     groundtruth_pose_at,
     load_sequence,
     read_file_list,
     subsequence,
 )
+from edgevo_jax.datasets.source import UnknownCameraError
 
 FR1_XYZ = "rgbd_dataset_freiburg1_xyz_first10"
 FR1_DESK = "rgbd_dataset_freiburg1_desk_clip9"
@@ -109,34 +109,35 @@ def test_read_file_list_bad_line_names_file_and_line(tmp_path, bad):
 @pytest.mark.parametrize(
     ("name", "cam"),
     [
-        ("rgbd_dataset_freiburg1_xyz", "freiburg1"),
-        ("rgbd_dataset_freiburg2_desk", "freiburg2"),
-        ("rgbd_dataset_freiburg3_teddy_first200", "freiburg3"),
-        ("fr1_desk", "freiburg1"),
-        ("tum-fr2-pioneer", "freiburg2"),
-        ("TUM_FR3", "freiburg3"),
+        ("rgbd_dataset_freiburg1_xyz", "fr1"),
+        ("rgbd_dataset_freiburg2_desk", "fr2"),
+        ("rgbd_dataset_freiburg3_teddy_first200", "fr3"),
+        ("fr1_desk", "fr1"),
+        ("tum-fr2-pioneer", "fr2"),
+        ("TUM_FR3", "fr3"),
     ],
 )
 def test_camera_from_name(name, cam):
-    intr, dist = camera_from_name(name)
-    assert (intr, dist) == FREIBURG_CAMERAS[cam]
+    assert camera_from_name(name) == CAMERAS[cam].camera
 
 
 def test_camera_table_values():
-    intr, dist = camera_from_name("freiburg1")
-    assert intr == Intrinsics(517.3, 516.5, 318.6, 255.3)
-    assert dist == (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)
-    intr, dist = camera_from_name("freiburg2")
-    assert intr == Intrinsics(520.9, 521.0, 325.1, 249.7)
-    assert dist == (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)
-    intr, dist = camera_from_name("freiburg3")
-    assert intr == Intrinsics(535.4, 539.2, 320.1, 247.6)
-    assert dist is None
+    """TUM's published calibrations (file_formats page), 20 ms readout for each."""
+    assert camera_from_name("freiburg1") == Camera(
+        Intrinsics(517.3, 516.5, 318.6, 255.3), (0.2624, -0.9531, -0.0054, 0.0026, 1.1633),
+        0.020)
+    assert camera_from_name("freiburg2") == Camera(
+        Intrinsics(520.9, 521.0, 325.1, 249.7), (0.2312, -0.7849, -0.0033, -0.0001, 0.9172),
+        0.020)
+    assert camera_from_name("freiburg3") == Camera(Intrinsics(535.4, 539.2, 320.1, 247.6),
+                                                   None, 0.020)
+    assert CAMERAS["kinect"].camera == Camera(Intrinsics(525.0, 525.0, 319.5, 239.5), None,
+                                              0.020)
 
 
 @pytest.mark.parametrize("name", ["my_sequence", "frame_fr12", "freiburg4", "freiburg1_vs_fr2"])
 def test_camera_from_name_unknown(name):
-    with pytest.raises(ValueError, match="intrinsics"):
+    with pytest.raises(UnknownCameraError, match=r"pass camera= .*or intrinsics="):
         camera_from_name(name)
 
 
@@ -155,7 +156,7 @@ def test_load_sequence_hand_made_association(tmp_path):
     np.testing.assert_array_equal(seq.timestamps, [10.000, 10.115, 10.300])
     assert [p.name for p in seq.rgb_files] == ["10.000000.png", "10.115000.png", "10.300000.png"]
     assert [p.name for p in seq.depth_files] == ["10.012000.png", "10.108000.png", "10.290000.png"]
-    assert seq.intrinsics == FREIBURG_CAMERAS["freiburg3"][0] and seq.distortion is None
+    assert seq.intrinsics == CAMERAS["fr3"].camera.intrinsics and seq.distortion is None
     assert (seq.width, seq.height) == (8, 6)
     assert seq.name == "rgbd_dataset_freiburg3_fake"
     assert seq.groundtruth is not None and seq.groundtruth[1].shape == (2, 7)
@@ -176,15 +177,21 @@ def test_load_sequence_hand_made_association(tmp_path):
 
 def test_load_sequence_options_and_errors(tmp_path):
     root = make_sequence(tmp_path / "my_clip", [1.0, 2.0], [1.001, 2.001])
-    with pytest.raises(ValueError, match="intrinsics"):
+    with pytest.raises(UnknownCameraError, match="camera="):
         load_sequence(root)  # no camera in the name
     intr = Intrinsics(500.0, 500.0, 4.0, 3.0)
     seq = load_sequence(root, intrinsics=intr, depth_factor=1000.0)
     assert seq.intrinsics == intr and seq.distortion is None and seq.groundtruth is None
     assert groundtruth_pose_at(seq, 1.0) is None
     assert seq.load_frame(0)[1][0, 0] == np.float32(1.0)  # 1000 / 1000
-    seq = load_sequence(root, intrinsics=intr, distortion=(0.1, 0.0, 0.0, 0.0, 0.0))
-    assert seq.distortion == (0.1, 0.0, 0.0, 0.0, 0.0)
+    seq = load_sequence(root, camera=Camera(intr, (0.1, 0.0, 0.0, 0.0, 0.0)))
+    assert seq.distortion == (0.1, 0.0, 0.0, 0.0, 0.0) and seq.readout_s == 0.0
+    with pytest.raises(ValueError, match="camera= or intrinsics=, not both"):
+        load_sequence(root, camera=Camera(intr), intrinsics=intr)
+    with pytest.raises(ValueError, match=r"camera='fr9' is not a preset.*fr1, fr2, fr3"):
+        load_sequence(root, camera="fr9")
+    with pytest.raises(ValueError, match="distortion must be 4, 5, 8, 12 or 14"):
+        load_sequence(root, camera=Camera(intr, (0.1, 0.0, 0.0)))
     with pytest.raises(ValueError, match="focal"):
         load_sequence(root, intrinsics=Intrinsics(-1.0, 500.0, 4.0, 3.0))
     with pytest.raises(ValueError, match="depth_factor"):
@@ -198,11 +205,15 @@ def test_load_sequence_options_and_errors(tmp_path):
         load_sequence(root, intrinsics=intr)
 
 
-def test_load_sequence_explicit_distortion_overrides_name(tmp_path):
+def test_load_sequence_explicit_camera_overrides_name(tmp_path):
     root = make_sequence(tmp_path / "rgbd_dataset_freiburg1_fake", [1.0], [1.001])
-    assert load_sequence(root).distortion == FREIBURG_CAMERAS["freiburg1"][1]
-    seq = load_sequence(root, distortion=None)
-    assert seq.distortion is None and seq.intrinsics == FREIBURG_CAMERAS["freiburg1"][0]
+    fr1 = CAMERAS["fr1"].camera
+    seq = load_sequence(root)
+    assert (seq.intrinsics, seq.distortion, seq.readout_s) == fr1
+    own = Camera(Intrinsics(500.0, 500.0, 4.0, 3.0))  # these images are 8x6
+    seq = load_sequence(root, camera=own)
+    assert (seq.intrinsics, seq.distortion, seq.readout_s) == own
+    assert load_sequence(root, camera=own, readout_s=0.01).readout_s == 0.01
 
 
 def test_load_frame_errors_hand_made(tmp_path):
@@ -238,8 +249,7 @@ def test_fr1_xyz_first10(shared_clip):
     assert np.all(np.diff(seq.timestamps) > 0)
     assert all(p.is_file() for p in seq.rgb_files + seq.depth_files)
     assert (seq.width, seq.height) == (640, 480)
-    assert seq.intrinsics == FREIBURG_CAMERAS["freiburg1"][0]
-    assert seq.distortion == FREIBURG_CAMERAS["freiburg1"][1]
+    assert (seq.intrinsics, seq.distortion) == CAMERAS["fr1"].camera[:2]
     # The ground truth covers every frame of this clip at 100 Hz.
     for t in seq.timestamps:
         assert groundtruth_pose_at(seq, t, max_diff=0.01) is not None
@@ -256,7 +266,7 @@ def test_fr1_xyz_first10(shared_clip):
 def test_fr1_undistortion(shared_clip):
     root = shared_clip(FR1_XYZ)
     seq = load_sequence(root)
-    raw_seq = load_sequence(root, distortion=None)
+    raw_seq = load_sequence(root, intrinsics=seq.intrinsics)
     rgb, depth = seq.load_frame(2)
     rgb_raw, depth_raw = raw_seq.load_frame(2)
     # The raw frame is the file as it is.
@@ -278,7 +288,7 @@ def test_fr1_undistortion(shared_clip):
 def test_fr3_teddy_has_no_distortion(shared_clip):
     seq = load_sequence(shared_clip(FR3_TEDDY))
     assert seq.distortion is None
-    assert seq.intrinsics == FREIBURG_CAMERAS["freiburg3"][0]
+    assert seq.intrinsics == CAMERAS["fr3"].camera.intrinsics
     # 200 rgb and 200 depth listed; the depth list runs 0.17 s longer, 193 pairs associate.
     assert len(seq) == 193
     rgb, depth = seq.load_frame(0)

@@ -7,11 +7,10 @@ from pathlib import Path
 from .groundtruth import groundtruth_pose_at
 from .pingpong import pingpong, pingpong_indices
 from .tum import (
-    FREIBURG_CAMERAS,
-    FROM_NAME,
     TumSequence,
     camera_from_name,
     load_sequence,
+    read_calibration,
     read_file_list,
     subsequence,
 )
@@ -23,14 +22,13 @@ BUNDLED_CLIP = (Path(__file__).resolve().parent.parent / "data"
 
 __all__ = [
     "BUNDLED_CLIP",
-    "FREIBURG_CAMERAS",
-    "FROM_NAME",
     "TumSequence",
     "camera_from_name",
     "groundtruth_pose_at",
     "load_sequence",
     "pingpong",
     "pingpong_indices",
+    "read_calibration",
     "read_file_list",
     "subsequence",
 ]

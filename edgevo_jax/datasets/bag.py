@@ -21,11 +21,11 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..camera import Intrinsics
+from ..camera import Camera, Intrinsics, checked_readout
 from ..io import read_trajectory
 from ..metrics import associate_timestamps
-from .source import DEPTH_TOPIC, INFO_TOPIC, RGB_TOPIC
-from .tum import Distortion, readout_from_name, undistort
+from .source import DEPTH_TOPIC, INFO_TOPIC, RGB_TOPIC, SourceError, UnknownCameraError
+from .tum import Distortion, camera_from_name, source_camera, undistort
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
@@ -192,6 +192,7 @@ def load_bag(
     rgb_topic: str = RGB_TOPIC,
     depth_topic: str = DEPTH_TOPIC,
     info_topic: str = INFO_TOPIC,
+    camera: Camera | str | None = None,
     intrinsics: Intrinsics | None = None,
     groundtruth: str | os.PathLike[str] | None = None,
     max_diff: float = 0.02,
@@ -200,14 +201,17 @@ def load_bag(
 ) -> BagSequence:
     """Open a ROS1 bag (``.bag``) or ROS2 bag (folder, ``.db3``, ``.mcap``) as a ``Source``.
 
-    The camera comes from ``intrinsics`` when given (then no undistortion), else from the
-    first message on ``info_topic``. ``frame_step`` k keeps every k-th rgb and depth message
-    before association. ``groundtruth``: a TUM trajectory file. ``readout_s``: the colour
-    camera's rolling-shutter readout time (s); None: the Freiburg cameras' when the bag's
+    The camera is ``camera`` when given (a ``Camera`` or a preset name of
+    ``camera.CAMERAS``: its intrinsics, distortion and readout), else ``intrinsics`` (a
+    pinhole: no undistortion), else the first message on ``info_topic`` (K, and D when not
+    all zero). ``frame_step`` k keeps every k-th rgb and depth message before association.
+    ``groundtruth``: a TUM trajectory file. ``readout_s``: the colour camera's rolling-shutter
+    readout time (s); None: ``camera``'s when given, else the Freiburg cameras' when the bag's
     name names one (the benchmark's bags), else 0 (a global shutter). Errors (ValueError, naming
     the topic): a topic missing or of another message type, an unsupported encoding, rgb and
-    depth of different sizes, no camera_info and no ``intrinsics``, no pair associating;
-    FileNotFoundError for a missing bag or ground-truth file."""
+    depth of different sizes, no pair associating; UnknownCameraError (a ValueError) for no
+    camera_info and no camera given; FileNotFoundError for a missing bag or ground-truth
+    file."""
     root = Path(path)
     if not root.exists():
         raise FileNotFoundError(f"ROS bag not found: {root}")
@@ -218,26 +222,36 @@ def load_bag(
         if not Path(groundtruth).is_file():
             raise FileNotFoundError(f"ground-truth file not found: {groundtruth}")
         gt = read_trajectory(groundtruth)
+    given = source_camera(camera=camera, intrinsics=intrinsics)
+    if readout_s is None:
+        readout_s = given.readout_s if camera is not None else _readout_named(root.name)
     seq = BagSequence(root=root, name=root.stem if root.is_file() else root.name,
                       intrinsics=Intrinsics(1.0, 1.0, 1.0, 1.0), distortion=None,
                       timestamps=np.zeros(0), groundtruth=gt, width=0, height=0,
                       rgb_topic=rgb_topic, depth_topic=depth_topic,
                       stamps=np.zeros((0, 2), np.int64), headers=np.zeros((0, 2)),
-                      readout_s=readout_from_name(root.name) if readout_s is None
-                      else float(readout_s))
+                      readout_s=checked_readout(readout_s))
     try:
         reader = seq._open()
     except Exception as err:  # rosbags' own errors: not a bag, unreadable
         raise ValueError(f"cannot read the ROS bag {root}: {err}") from None
     try:
-        return _scan(seq, reader, info_topic=info_topic, intrinsics=intrinsics,
+        return _scan(seq, reader, info_topic=info_topic, camera=given,
                      max_diff=max_diff, frame_step=frame_step)
     except BaseException:
         seq.close()
         raise
 
 
-def _scan(seq: BagSequence, reader: Any, *, info_topic: str, intrinsics: Intrinsics | None,
+def _readout_named(name: str) -> float:
+    """The readout of the Freiburg camera a bag's name names (the benchmark's bags), else 0."""
+    try:
+        return camera_from_name(name).readout_s
+    except UnknownCameraError:
+        return 0.0
+
+
+def _scan(seq: BagSequence, reader: Any, *, info_topic: str, camera: Camera | None,
           max_diff: float, frame_step: int) -> BagSequence:
     """``seq`` with its camera, size and associated frames, from the open ``reader``."""
     root, rgb_topic, depth_topic = seq.root, seq.rgb_topic, seq.depth_topic
@@ -246,20 +260,21 @@ def _scan(seq: BagSequence, reader: Any, *, info_topic: str, intrinsics: Intrins
     for topic, what, types in ((rgb_topic, "rgb", (IMAGE, COMPRESSED)),
                                (depth_topic, "depth", (IMAGE,))):
         if topic not in conns:
-            raise ValueError(f"bag {root} has no topic {topic} ({what} images); its image "
-                             f"topics: {', '.join(images) or 'none'} (pass --{what}-topic)")
+            raise SourceError(f"bag {root} has no topic {topic} ({what} images); its image "
+                              f"topics: {', '.join(images) or 'none'}",
+                              api=f"pass {what}_topic=", cli=f"pass --{what}-topic")
         if conns[topic].msgtype not in types:
             raise ValueError(f"{what} topic {topic} of {root} carries "
                              f"{conns[topic].msgtype}, not {' or '.join(types)}")
-    if intrinsics is not None:
-        intr, dist = Intrinsics(*(float(v) for v in intrinsics)).validate(), None
+    if camera is not None:
+        intr, dist = camera.intrinsics, camera.distortion
     elif info_topic in conns and conns[info_topic].msgtype == CAMERA_INFO:
         conn = conns[info_topic]
         _, _, raw = next(reader.messages([conn]))
         intr, dist = _camera(reader.deserialize(raw, conn.msgtype))
     else:
-        raise ValueError(f"bag {root} has no camera_info topic {info_topic} (the camera's "
-                         "intrinsics): pass --intrinsics FX FY CX CY or --info-topic")
+        raise UnknownCameraError(f"bag {root} has no camera_info topic {info_topic} (the "
+                                 "camera's intrinsics)", also=("info_topic=", "--info-topic"))
     found: dict[str, list[tuple[int, float]]] = {rgb_topic: [], depth_topic: []}
     first: dict[str, np.ndarray] = {}
     for conn, bag_time, raw in reader.messages([conns[rgb_topic], conns[depth_topic]]):

@@ -15,8 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from ..camera import Intrinsics
+from ..camera import Camera, Distortion, Intrinsics
 from ..io import read_trajectory
+from .source import UnknownCameraError
+from .tum import source_camera, undistort
 
 #: frames of a live run when no count is given (stop earlier with Ctrl-C)
 UNBOUNDED = 10**9
@@ -46,6 +48,8 @@ class RealSenseSource:
     frames: int
     groundtruth: tuple[np.ndarray, np.ndarray] | None = None
     timestamps: list[float] = field(default_factory=list)
+    distortion: Distortion | None = None  # a given camera's; the stream's must be none
+    readout_s: float = 0.0  # the colour camera's rolling-shutter readout time (s)
 
     def __len__(self) -> int:
         return self.frames
@@ -74,7 +78,9 @@ class RealSenseSource:
         return rgb, raw
 
     def rectify_frame(self, rgb: np.ndarray, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Depth in float32 metres (0: no measurement); the colour image as it is."""
+        """Depth in float32 metres (0: no measurement); both undistorted when ``distortion``
+        is set (a given camera's)."""
+        rgb, raw = undistort(rgb, raw, self.intrinsics, self.distortion)
         return rgb, raw.astype(np.float32) * np.float32(self.depth_scale)
 
     def close(self) -> None:
@@ -89,15 +95,19 @@ def open_realsense(
     height: int = 480,
     fps: int = 30,
     max_frames: int | None = None,
+    camera: Camera | str | None = None,
     intrinsics: Intrinsics | None = None,
     groundtruth: str | os.PathLike[str] | None = None,
     rs: Any = None,
 ) -> RealSenseSource:
     """Start a RealSense camera (``serial``: that one; None: the first) streaming colour and
     depth at ``width`` x ``height`` and ``fps``. ``max_frames`` frames are tracked (None:
-    until stopped). The camera comes from the colour stream's calibration unless
-    ``intrinsics`` are given; a colour stream with lens distortion is refused (the D400
-    colour streams report none). ``rs``: the pyrealsense2 module (tests pass a replay)."""
+    until stopped). The camera is ``camera`` (a ``Camera`` or a preset name of
+    ``camera.CAMERAS``) or ``intrinsics`` (a pinhole) when given, else the colour stream's
+    calibration with readout 0; a colour stream with lens distortion is then refused
+    (UnknownCameraError; the D400 colour streams report none). ``rs``: the pyrealsense2
+    module (tests pass a replay)."""
+    given = source_camera(camera=camera, intrinsics=intrinsics)
     rs = _pyrealsense2() if rs is None else rs
     config = rs.config()
     if serial:
@@ -112,18 +122,18 @@ def open_realsense(
                          f"({width}x{height} at {fps} Hz): {err}") from None
     depth_scale = float(profile.get_device().first_depth_sensor().get_depth_scale())
     stream = profile.get_stream(rs.stream.color).as_video_stream_profile().get_intrinsics()
-    if intrinsics is None:
+    if given is None:
         if any(abs(float(c)) > 0 for c in stream.coeffs):
             pipeline.stop()
-            raise ValueError(f"the RealSense colour stream reports lens distortion "
-                             f"({stream.model}, {list(stream.coeffs)}): pass --intrinsics of "
-                             "undistorted images, or use a stream without it")
-        intrinsics = Intrinsics(float(stream.fx), float(stream.fy), float(stream.ppx),
-                                float(stream.ppy))
+            raise UnknownCameraError(f"the RealSense colour stream reports lens distortion "
+                                     f"({stream.model}, {list(stream.coeffs)}), which is not "
+                                     "removed")
+        given = Camera(Intrinsics(float(stream.fx), float(stream.fy), float(stream.ppx),
+                                  float(stream.ppy)))
     gt = read_trajectory(groundtruth) if groundtruth is not None else None
     return RealSenseSource(
         rs=rs, pipeline=pipeline, align=rs.align(rs.stream.color), depth_scale=depth_scale,
         name=f"realsense_{serial}" if serial else "realsense",
-        intrinsics=intrinsics.validate(width=width, height=height), width=width,
+        intrinsics=given.intrinsics.validate(width=width, height=height), width=width,
         height=height, frames=UNBOUNDED if max_frames is None else int(max_frames),
-        groundtruth=gt)
+        groundtruth=gt, distortion=given.distortion, readout_s=given.readout_s)

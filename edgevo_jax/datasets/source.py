@@ -10,7 +10,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from ..camera import Intrinsics
+from ..camera import CAMERAS, Camera, Intrinsics
 
 #: The TUM bags' topics (``load_bag``'s defaults).
 RGB_TOPIC = "/camera/rgb/image_color"
@@ -18,6 +18,34 @@ DEPTH_TOPIC = "/camera/depth/image"
 INFO_TOPIC = "/camera/rgb/camera_info"
 #: ``open_source`` opens the first RealSense camera for this path (``realsense:SERIAL``: that one).
 REALSENSE = "realsense"
+
+
+class SourceError(ValueError):
+    """A source that cannot be opened as asked, with the remedy worded twice: ``str(err)``
+    names the API's arguments, ``cli_message()`` the ``edgevo run`` options."""
+
+    def __init__(self, what: str, *, api: str, cli: str) -> None:
+        self.what, self.cli = what, cli
+        super().__init__(f"{what}: {api}")
+
+    def cli_message(self) -> str:
+        """The message with the ``edgevo run`` options instead of the API's arguments."""
+        return f"{self.what}: {self.cli}"
+
+
+class UnknownCameraError(SourceError):
+    """A source whose camera is neither given nor found (in a folder name, a calibration.txt,
+    a bag's camera_info, a RealSense's own calibration); ``also``: one more remedy, as
+    (API argument, CLI option)."""
+
+    def __init__(self, what: str, *, also: tuple[str, str] | None = None) -> None:
+        api_more, cli_more = (f", or {also[0]}", f", or {also[1]}") if also else ("", "")
+        presets = ", ".join(CAMERAS)
+        super().__init__(
+            what, api=f"pass camera= (a preset: {presets}; or a Camera with intrinsics and "
+            f"distortion) or intrinsics={api_more}",
+            cli=f"pass --camera ({presets}), --calibration FILE (fx fy cx cy [k1 k2 p1 p2 k3]) "
+            f"or --intrinsics FX FY CX CY{cli_more}")
 
 
 @runtime_checkable
@@ -73,6 +101,7 @@ def is_bag(path: str | os.PathLike[str]) -> bool:
 def open_source(
     path: str | os.PathLike[str],
     *,
+    camera: Camera | str | None = None,
     intrinsics: Intrinsics | None = None,
     depth_factor: float = 5000.0,
     frame_step: int = 1,
@@ -84,25 +113,30 @@ def open_source(
 ) -> Source:
     """The reader for ``path``: a ROS bag (``is_bag``: ``bag.load_bag`` with the topics), the
     string ``realsense`` or ``realsense:SERIAL`` (``realsense.open_realsense``; ``max_frames``
-    frames, None: until stopped), else a TUM or ETH3D folder (``tum.load_sequence``: the
-    camera from ``intrinsics``, else the folder's calibration.txt, else its name).
-    ``groundtruth``: a TUM trajectory file for bags and cameras (folders read their own)."""
+    frames, None: until stopped), else a TUM or ETH3D folder (``tum.load_sequence``).
+    The camera: ``camera`` (a ``Camera`` or a preset name of ``camera.CAMERAS``) or
+    ``intrinsics`` (a pinhole) when given, else the source's own (a folder's calibration.txt
+    or name, a bag's camera_info, a RealSense's calibration; ``UnknownCameraError`` when it
+    has none). ``groundtruth``: a TUM trajectory file for bags and cameras (folders read
+    their own)."""
     text = os.fspath(path)
     if text == REALSENSE or text.startswith(REALSENSE + ":"):
         from .realsense import open_realsense
 
         serial = text.partition(":")[2] or None
-        return open_realsense(serial=serial, max_frames=max_frames, intrinsics=intrinsics,
-                              groundtruth=groundtruth)
+        return open_realsense(serial=serial, max_frames=max_frames, camera=camera,
+                              intrinsics=intrinsics, groundtruth=groundtruth)
     if is_bag(path):
         from .bag import load_bag
 
         return load_bag(path, rgb_topic=rgb_topic, depth_topic=depth_topic,
-                        info_topic=info_topic, intrinsics=intrinsics, groundtruth=groundtruth,
-                        frame_step=frame_step)
+                        info_topic=info_topic, camera=camera, intrinsics=intrinsics,
+                        groundtruth=groundtruth, frame_step=frame_step)
     from .tum import load_sequence
 
     if groundtruth is not None:
-        raise ValueError(f"{path}: a folder reads its own groundtruth.txt (no --groundtruth)")
-    kwargs = {} if intrinsics is None else {"intrinsics": intrinsics}
-    return load_sequence(path, depth_factor=depth_factor, frame_step=frame_step, **kwargs)
+        raise SourceError(f"{path}: a folder reads its own groundtruth.txt",
+                          api="pass groundtruth= for bags and cameras only",
+                          cli="pass --groundtruth for bags and cameras only")
+    return load_sequence(path, camera=camera, intrinsics=intrinsics, depth_factor=depth_factor,
+                         frame_step=frame_step)

@@ -3,14 +3,14 @@
 Layout: ``rgb.txt``, ``depth.txt`` (``timestamp filename`` lines), ``rgb/``, ``depth/`` and an
 optional ``groundtruth.txt`` (``timestamp tx ty tz qx qy qz qw``, T_world_cam). Depth PNGs are
 16-bit with ``value / depth_factor`` metres (5000 in the benchmark) and 0 for no measurement.
+Images are PNG (checked whole before tracking) or JPEG (likewise) or any format OpenCV reads.
 ETH3D SLAM folders add ``calibration.txt`` (one line ``fx fy cx cy``, undistorted images);
-any folder holding one takes its camera from it.
+any folder holding one takes its camera from it (``read_calibration``).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import enum
 import functools
 import math
 import os
@@ -22,13 +22,19 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..camera import Intrinsics, undistortion_maps
+from ..camera import (
+    CAMERAS,
+    Camera,
+    Distortion,
+    Intrinsics,
+    camera_preset,
+    undistortion_maps,
+)
 from ..io import read_trajectory
 from ..metrics import associate_timestamps
+from .source import UnknownCameraError
 
 __all__ = [
-    "FREIBURG_CAMERAS",
-    "FROM_NAME",
     "EmptyDepthWarning",
     "TumSequence",
     "camera_from_name",
@@ -36,30 +42,7 @@ __all__ = [
     "load_sequence",
     "read_calibration",
     "read_file_list",
-    "readout_from_name",
-    "FREIBURG_READOUT_S",
 ]
-
-Distortion = tuple[float, ...]
-
-#: Factory calibration of the three benchmark cameras: intrinsics and OpenCV distortion
-#: (k1, k2, p1, p2, k3); None where the images are already undistorted (freiburg3).
-FREIBURG_CAMERAS: dict[str, tuple[Intrinsics, Distortion | None]] = {
-    "freiburg1": (
-        Intrinsics(517.3, 516.5, 318.6, 255.3),
-        (0.2624, -0.9531, -0.0054, 0.0026, 1.1633),
-    ),
-    "freiburg2": (
-        Intrinsics(520.9, 521.0, 325.1, 249.7),
-        (0.2312, -0.7849, -0.0033, -0.0001, 0.9172),
-    ),
-    "freiburg3": (Intrinsics(535.4, 539.2, 320.1, 247.6), None),
-}
-
-#: Rolling-shutter readout time (s) of the benchmark's colour cameras (Kinect-type sensors
-#: reading their rows one after another): 20 ms, measured without ground truth by
-#: ``scripts/readout_time.py`` on fr1 and fr3 clips (docs/decisions.md).
-FREIBURG_READOUT_S = 0.020
 
 # The project's development clips (in ../shared/data/tum next to a checkout; not shipped).
 SHARED_CLIPS = (
@@ -75,14 +58,6 @@ _CAMERA_RE = re.compile(r"freiburg([123])|(?<![a-z0-9])fr([123])(?![a-z0-9])")
 class EmptyDepthWarning(UserWarning):
     """A depth image without a single measurement (all zero): the run goes on, the frame can
     be tracked against the keyframe but cannot become one."""
-
-
-class _FromName(enum.Enum):
-    FROM_NAME = "from the folder name"
-
-
-#: Default of ``load_sequence(distortion=...)``: take the distortion from the folder name.
-FROM_NAME = _FromName.FROM_NAME
 
 
 def read_file_list(path: str | os.PathLike[str]) -> tuple[np.ndarray, list[str]]:
@@ -126,48 +101,44 @@ def read_file_list(path: str | os.PathLike[str]) -> tuple[np.ndarray, list[str]]
 CALIBRATION = "calibration.txt"
 
 
-def read_calibration(path: str | os.PathLike[str]) -> Intrinsics:
-    """Intrinsics from an ETH3D ``calibration.txt``: ``fx fy cx cy`` on its first line that is
-    not blank or a '#' comment. ValueError naming the file for anything else."""
+def read_calibration(path: str | os.PathLike[str]) -> Camera:
+    """The camera of a calibration file: 4 numbers ``fx fy cx cy`` (ETH3D's
+    ``calibration.txt``: undistorted images) or 9, ``fx fy cx cy k1 k2 p1 p2 k3`` (OpenCV's
+    distortion of the raw images), on one line or several, separated by spaces or commas;
+    blank lines and '#' comments are skipped. The readout is 0 (a global shutter: set
+    ``Config.readout_s`` for a rolling one). FileNotFoundError, or ValueError naming the file
+    and what is wrong with it."""
     p = Path(path)
-    lines = [ln.split() for ln in p.read_text(encoding="utf-8", errors="replace").splitlines()
-             if ln.strip() and not ln.lstrip().startswith("#")]
-    if not lines or len(lines[0]) != 4:
-        raise ValueError(f"{p}: expected one line 'fx fy cx cy', got "
-                         f"{' '.join(lines[0]) if lines else 'nothing'!r}")
+    if not p.is_file():
+        raise FileNotFoundError(f"calibration file not found: {p}")
+    fields = [v for ln in p.read_text(encoding="utf-8", errors="replace").splitlines()
+              if ln.strip() and not ln.lstrip().startswith("#")
+              for v in ln.replace(",", " ").split()]
+    if len(fields) not in (4, 9):
+        raise ValueError(f"{p}: expected 4 numbers (fx fy cx cy) or 9 (fx fy cx cy k1 k2 p1 p2 "
+                         f"k3), got {len(fields)}: {' '.join(fields)[:80]!r}")
     try:
-        values = [float(v) for v in lines[0]]
+        values = [float(v) for v in fields]
     except ValueError:
-        raise ValueError(f"{p}: 'fx fy cx cy' must be numbers, got {' '.join(lines[0])!r}") \
-            from None
+        raise ValueError(f"{p}: 'fx fy cx cy [k1 k2 p1 p2 k3]' must be numbers, got "
+                         f"{' '.join(fields)!r}") from None
     try:
-        return Intrinsics(*values).validate()
+        return Camera(Intrinsics(*values[:4]), tuple(values[4:]) or None).validate()
     except ValueError as err:
         raise ValueError(f"{p}: {err}") from None
 
 
-def camera_from_name(name: str) -> tuple[Intrinsics, Distortion | None]:
-    """Calibration of the Freiburg camera named in a folder name (``freiburgN`` or ``frN``).
-
-    Returns (intrinsics, distortion or None). ValueError if no (or more than one) camera is
-    named, asking for explicit intrinsics.
-    """
+def camera_from_name(name: str) -> Camera:
+    """The TUM benchmark camera a folder (or bag) name names: ``freiburgN`` or ``frN`` picks
+    preset ``frN`` of ``camera.CAMERAS``. UnknownCameraError if no (or more than one) camera
+    is named."""
     found = {a or b for a, b in _CAMERA_RE.findall(name.lower())}
     if len(found) != 1:
         what = "no Freiburg camera" if not found else f"several cameras ({sorted(found)})"
-        raise ValueError(
-            f"cannot tell the camera from the name {name!r}: {what} named "
-            "(expected 'freiburg1/2/3' or 'fr1/2/3'); pass intrinsics= (and distortion=) "
-            "explicitly"
-        )
-    return FREIBURG_CAMERAS[f"freiburg{found.pop()}"]
-
-
-def readout_from_name(name: str) -> float:
-    """The rolling-shutter readout time (s) of the Freiburg camera a name names
-    (``FREIBURG_READOUT_S``), 0.0 (a global shutter) when it names none."""
-    return FREIBURG_READOUT_S if len({a or b for a, b in _CAMERA_RE.findall(
-        name.lower())}) == 1 else 0.0
+        raise UnknownCameraError(
+            f"cannot tell the camera from the name {name!r}: {what} named (expected "
+            "'freiburg1/2/3' or 'fr1/2/3')")
+    return CAMERAS[f"fr{found.pop()}"].camera
 
 
 @functools.lru_cache(maxsize=8)
@@ -198,6 +169,9 @@ def _read_image(path: Path, flags: int, what: str) -> np.ndarray:
     if not path.is_file():
         raise FileNotFoundError(f"{what} image not found: {path}")
     buf = np.fromfile(path, np.uint8)
+    if path.suffix.lower() in _JPEG_SUFFIXES and _JPEG_END not in buf[-64:].tobytes():
+        raise ValueError(f"cannot decode {what} image {path}: truncated JPEG (no end-of-image "
+                         f"marker FF D9 at the end of its {buf.size} bytes)")
     img = cv2.imdecode(buf, flags) if buf.size else None
     if img is None:
         raise ValueError(f"cannot decode {what} image {path} (corrupt or truncated file?)")
@@ -232,10 +206,52 @@ def _png_header(path: Path, what: str) -> tuple[int, int, str] | None:
     return width, height, f"{bits}, {_PNG_COLOUR.get(head[25], f'colour type {head[25]}')}"
 
 
+_JPEG_SUFFIXES = (".jpg", ".jpeg")
+_JPEG_END = b"\xff\xd9"  # EOI: the last marker of a whole JPEG
+# start-of-frame markers (baseline, progressive, lossless, arithmetic): they hold the size
+_JPEG_SOF = frozenset({0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE,
+                       0xCF})
+
+
+def _jpeg_header(path: Path, what: str) -> tuple[int, int, str] | None:
+    """(width, height, description) from a JPEG's frame header, checking that the file is a
+    whole JPEG (SOI at the start, EOI at the end) without decoding it; None for a non-JPEG
+    name."""
+    if path.suffix.lower() not in _JPEG_SUFFIXES:
+        return None
+    size = path.stat().st_size
+    with path.open("rb") as f:
+        if f.read(3) != b"\xff\xd8\xff":
+            raise ValueError(f"cannot decode {what} image {path}: not a JPEG file ({size} "
+                             "bytes; corrupt?)")
+        f.seek(max(size - 64, 0))
+        if _JPEG_END not in f.read():
+            raise ValueError(f"cannot decode {what} image {path}: truncated JPEG (no "
+                             f"end-of-image marker FF D9 at the end of its {size} bytes)")
+        f.seek(2)
+        while True:  # segments: FF, marker, 2-byte length (counting itself), body
+            head = f.read(4)
+            while len(head) == 4 and head[1] == 0xFF:  # fill bytes before a marker
+                head = head[1:] + f.read(1)
+            if len(head) < 4 or head[0] != 0xFF or head[1] in (0xD9, 0xDA):
+                raise ValueError(f"cannot decode {what} image {path}: corrupt JPEG (no frame "
+                                 "header before its image data)")
+            if head[1] in _JPEG_SOF:
+                body = f.read(6)  # precision, height, width, components
+                if len(body) < 6:
+                    break
+                channels = body[5]
+                return (int.from_bytes(body[3:5], "big"), int.from_bytes(body[1:3], "big"),
+                        f"{body[0]}-bit, {channels} channel{'s' if channels != 1 else ''}")
+            f.seek(int.from_bytes(head[2:4], "big") - 2, os.SEEK_CUR)
+    raise ValueError(f"cannot decode {what} image {path}: corrupt JPEG (frame header cut "
+                     "short)")
+
+
 def _check_files(rgb_files: tuple[Path, ...], depth_files: tuple[Path, ...]) -> None:
-    """Every associated image present, a whole PNG, the same size, depth 16-bit single
-    channel: read from the files' headers and ends only (no decoding), so a bad file deep in a
-    long sequence is reported before tracking starts."""
+    """Every associated image present, a whole PNG or JPEG (other formats: present), the same
+    size, depth 16-bit single channel: read from the files' headers and ends only (no
+    decoding), so a bad file deep in a long sequence is reported before tracking starts."""
     for what, files in (("rgb", rgb_files), ("depth", depth_files)):
         missing = [f for f in files if not f.is_file()]
         if missing:
@@ -245,8 +261,8 @@ def _check_files(rgb_files: tuple[Path, ...], depth_files: tuple[Path, ...]) -> 
             )
     size = None
     for rgb_path, depth_path in zip(rgb_files, depth_files, strict=True):
-        rgb = _png_header(rgb_path, "rgb")
-        depth = _png_header(depth_path, "depth")
+        rgb = _png_header(rgb_path, "rgb") or _jpeg_header(rgb_path, "rgb")
+        depth = _png_header(depth_path, "depth") or _jpeg_header(depth_path, "depth")
         if depth is not None and depth[2] != "16-bit, 1 channel":
             raise ValueError(
                 f"depth image {depth_path} must be single-channel 16-bit, got {depth[2]}"
@@ -381,11 +397,33 @@ def subsequence(seq: TumSequence, start: int, stop: int, *, step: int = 1) -> Tu
         depth_timestamps=None if seq.depth_timestamps is None else seq.depth_timestamps[part])
 
 
+def source_camera(*, camera: Camera | str | None,
+                  intrinsics: Intrinsics | None) -> Camera | None:
+    """The camera a reader was given, checked: ``camera`` (a ``Camera`` or a preset name of
+    ``camera.CAMERAS``), else ``intrinsics`` as a pinhole camera (no distortion, readout 0);
+    None when neither is given. ValueError naming the argument: both given, an unknown
+    preset, a bad value."""
+    if camera is not None and intrinsics is not None:
+        raise ValueError("pass camera= or intrinsics=, not both (a Camera holds intrinsics)")
+    if camera is None and intrinsics is None:
+        return None
+    if isinstance(camera, str):
+        cam = camera_preset(camera)
+    elif camera is not None:
+        if not isinstance(camera, Camera):
+            raise ValueError(f"camera= must be a Camera or a preset name "
+                             f"({', '.join(CAMERAS)}), got {type(camera).__name__}")
+        cam = camera
+    else:
+        cam = Camera(intrinsics)  # type: ignore[arg-type]
+    return cam.validate()
+
+
 def load_sequence(
     path: str | os.PathLike[str],
     *,
+    camera: Camera | str | None = None,
     intrinsics: Intrinsics | None = None,
-    distortion: Distortion | _FromName | None = FROM_NAME,
     depth_factor: float = 5000.0,
     max_diff: float = 0.02,
     check_images: bool = True,
@@ -399,20 +437,22 @@ def load_sequence(
     recorded; where the lists have gaps, pairs that no longer associate are dropped, so the
     motion between tracked frames can span more than k frames). The name gets ``_everyk``.
 
-    Intrinsics come from ``intrinsics`` when given, else from the folder's ``calibration.txt``
-    (ETH3D, ``read_calibration``), else from the folder name (``camera_from_name``).
-    ``distortion`` defaults to the folder name's camera, or to None when the intrinsics come
-    from ``intrinsics`` or calibration.txt; ``readout_s`` (the rolling shutter's readout
-    time, s) likewise: ``FREIBURG_READOUT_S`` for a Freiburg camera named, else 0 (ETH3D's
-    cameras have global shutters). Ground
-    truth is read when ``groundtruth.txt`` exists (None otherwise: runs go on without ATE).
+    The camera (pinhole intrinsics, lens distortion removed from every frame, rolling-shutter
+    readout) is ``camera`` when given: a ``Camera`` or the name of a preset of
+    ``camera.CAMERAS`` ('fr1', 'fr2', 'fr3', 'kinect'); else ``intrinsics`` (a pinhole
+    camera: no distortion, readout 0); else the folder's ``calibration.txt``
+    (``read_calibration``; ETH3D's cameras have global shutters: readout 0); else the camera
+    the folder name names (``camera_from_name``: freiburg1/2/3 or fr1/2/3), else
+    UnknownCameraError (a ValueError). ``readout_s`` (s), when given, replaces the camera's
+    readout. Ground truth is read when ``groundtruth.txt`` exists (None otherwise: runs go on
+    without ATE).
 
     Everything that can be checked without tracking is checked here, so that a bad input stops
     the run before any JAX code: FileNotFoundError for a missing folder, list or image;
     ValueError (naming the file, and the line for text files) for an unparsable or unsorted
     list, a bad ground-truth line, non-finite or non-positive intrinsics, a principal point
     outside the image, when no rgb/depth pair associates within ``max_diff``, and for any image
-    that is not a whole PNG (truncated, not a PNG), a depth image that is not 16-bit single
+    that is not a whole PNG or JPEG (truncated, not one), a depth image that is not 16-bit single
     channel or images of different sizes (``check_images=False`` skips the image checks
     except on the first frame, which is always decoded).
     """
@@ -428,22 +468,14 @@ def load_sequence(
     if not (math.isfinite(depth_factor) and depth_factor > 0):
         raise ValueError(f"depth_factor must be positive and finite, got {depth_factor}")
     name = Path(os.path.abspath(root)).name  # normalise '.'/'..' but keep symlink names
-    if intrinsics is None and (root / CALIBRATION).is_file():
-        intr = read_calibration(root / CALIBRATION)
-        dist = None if distortion is FROM_NAME else distortion
-    elif intrinsics is None:
-        intr, name_dist = camera_from_name(name)
-        dist = name_dist if distortion is FROM_NAME else distortion
-        readout_s = readout_from_name(name) if readout_s is None else readout_s
-    else:
-        intr = Intrinsics(*(float(v) for v in intrinsics)).validate()
-        dist = None if distortion is FROM_NAME else distortion
-    if dist is not None:
-        dist = tuple(float(v) for v in dist)  # type: ignore[union-attr]
-        if len(dist) not in (4, 5, 8, 12, 14) or not all(math.isfinite(v) for v in dist):
-            raise ValueError(
-                f"distortion must be 4, 5, 8, 12 or 14 finite OpenCV coefficients, got {dist}"
-            )
+    cam = source_camera(camera=camera, intrinsics=intrinsics)
+    from_name = cam is None and not (root / CALIBRATION).is_file()
+    if from_name:
+        cam = camera_from_name(name)
+    elif cam is None:
+        cam = read_calibration(root / CALIBRATION)
+    if readout_s is not None:
+        cam = cam._replace(readout_s=readout_s).validate()
 
     if not (isinstance(frame_step, int) and frame_step >= 1):
         raise ValueError(f"frame_step must be a positive integer, got {frame_step!r}")
@@ -476,8 +508,8 @@ def load_sequence(
     seq = TumSequence(
         root=root,
         name=name,
-        intrinsics=intr,
-        distortion=dist,
+        intrinsics=cam.intrinsics,
+        distortion=cam.distortion,
         depth_factor=float(depth_factor),
         timestamps=rgb_t[pairs[:, 0]],
         rgb_files=rgb_files,
@@ -486,10 +518,10 @@ def load_sequence(
         width=int(first.shape[1]),
         height=int(first.shape[0]),
         depth_timestamps=depth_t[pairs[:, 1]],
-        readout_s=0.0 if readout_s is None else float(readout_s),
+        readout_s=cam.readout_s,
     )
-    if intrinsics is not None or (root / CALIBRATION).is_file():  # the Freiburg table: 640x480
-        intr.validate(width=seq.width, height=seq.height)
+    if not from_name:  # (a name's Freiburg camera fits the benchmark's 640x480)
+        cam.intrinsics.validate(width=seq.width, height=seq.height)
     with warnings.catch_warnings():  # an empty first depth warns when the run decodes it
         warnings.simplefilter("ignore", EmptyDepthWarning)
         seq.decode_frame(0)  # decoded in full once: what the headers cannot tell
