@@ -265,6 +265,16 @@ def _aligned(G: np.ndarray, P: np.ndarray, align: str) -> tuple[np.ndarray, floa
     return out, s
 
 
+def _enough(what: str, align: str, k: int, least: int, max_diff: float, offset: float) -> None:
+    """ValueError unless k associated poses are enough for ``what`` aligned by ``align`` (the
+    Umeyama alignments need 3 points)."""
+    need = max(least, 3 if align in ("se3", "sim3") else 0)
+    if k < need:
+        raise ValueError(
+            f"{what} with align={align!r} needs at least {need} associated poses, got {k} "
+            f"(max_diff {max_diff} s, offset {offset} s): do the timestamps overlap?")
+
+
 def ate(groundtruth: TrajectoryLike, estimate: TrajectoryLike, *, align: str = "se3",
         max_diff: float = 0.02, offset: float = 0.0) -> dict[str, float | int]:
     """Absolute trajectory error: evo's APE of the translation part, in metres.
@@ -287,12 +297,7 @@ def ate(groundtruth: TrajectoryLike, estimate: TrajectoryLike, *, align: str = "
     """
     _check_option("align", align, ALIGNMENTS)
     G, P, _ = _associated(groundtruth, estimate, max_diff, offset)
-    need = 3 if align in ("se3", "sim3") else 1
-    if G.shape[0] < need:
-        raise ValueError(
-            f"ATE with align={align!r} needs at least {need} associated poses, got "
-            f"{G.shape[0]} (max_diff {max_diff} s, offset {offset} s): do the timestamps "
-            "overlap?")
+    _enough("ATE", align, G.shape[0], 1, max_diff, offset)
     A, s = _aligned(G, P, align)
     err = np.linalg.norm(A[:, :3, 3] - G[:, :3, 3], axis=-1)
     return {**_stats(err), "n": int(err.size), "scale": s}
@@ -355,8 +360,9 @@ def rpe(groundtruth: TrajectoryLike, estimate: TrajectoryLike, *, delta: float =
     |trans(E)| in metres (``rmse``, ``mean``, ``median``, ``std``, ``min``, ``max``: evo's
     ``--pose_relation trans_part``), of angle(E) in degrees (the same names prefixed ``rot_``:
     evo's ``angle_deg``), ``n`` (pairs) and ``scale`` (as :func:`ate`). Errors are per pair,
-    not per second (:func:`rpe_per_second` is). No pair (a trajectory shorter than delta):
-    ``n`` 0 and NaN statistics.
+    not per second (:func:`rpe_per_second` is). No pair (a trajectory shorter than delta, or
+    no pose associated): ``n`` 0 and NaN statistics; ValueError when 1 or 2 poses associate
+    and ``align`` is se3 or sim3.
     """
     _check_option("unit", unit, DELTA_UNITS)
     _check_option("align", align, ALIGNMENTS)
@@ -368,10 +374,11 @@ def rpe(groundtruth: TrajectoryLike, estimate: TrajectoryLike, *, delta: float =
     if not (math.isfinite(delta_tol) and delta_tol >= 0):
         raise ValueError(f"delta_tol must be >= 0 and finite, got {delta_tol}")
     G, P, ts = _associated(groundtruth, estimate, max_diff, offset)
-    s = 1.0
-    if align != "none" and G.shape[0] >= (3 if align in ("se3", "sim3") else 1):
-        P, s = _aligned(G, P, align)
     k = G.shape[0]
+    s = 1.0
+    if align != "none" and k:
+        _enough("RPE", align, k, 0, max_diff, offset)
+        P, s = _aligned(G, P, align)
     if unit == "frames":
         step = int(delta)
         ids = np.arange(k) if all_pairs else np.arange(0, k, step)
