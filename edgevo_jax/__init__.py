@@ -6,6 +6,7 @@ also takes a preset name of ``camera.CAMERAS``), ``Odometry`` (the
 streaming tracker; ``FrameResult`` per frame), ``run`` (a whole sequence, with its
 trajectory file) and ``evaluate`` (many sequences under many configurations, batched),
 ``load_sequence`` (TUM-style folders), ``summarise`` (a run's statistics and ATE / RPE),
+``ate`` and ``rpe`` (a trajectory's absolute and relative pose errors, as evo computes them),
 ``Pose`` (the SE(3) pose type of device code) and ``enable_batch_exact``. Importing the
 package changes no process-wide setting: ``enable_batch_exact`` turns on batch-size-exact
 CPU arithmetic (the ``edgevo`` CLI does).
@@ -22,11 +23,12 @@ from .config import Config
 from .datasets.tum import load_sequence
 from .determinism import enable_batch_exact
 from .geometry import Pose
+from .metrics import ate, rpe
 from .pipeline.batch import evaluate
 from .pipeline.odometry import FrameResult, Odometry
 from .pipeline.run import run_sequence as run
 from .pipeline.run import summarise
 
-__all__ = ["Camera", "Config", "FrameResult", "Intrinsics", "Odometry", "Pose",
-           "enable_batch_exact", "evaluate", "load_sequence", "run", "summarise"]
+__all__ = ["Camera", "Config", "FrameResult", "Intrinsics", "Odometry", "Pose", "ate",
+           "enable_batch_exact", "evaluate", "load_sequence", "rpe", "run", "summarise"]
 __version__ = "0.1.0"

@@ -18,6 +18,9 @@ from .datasets import BUNDLED_CLIP  # noqa: E402
 from .datasets.source import DEPTH_TOPIC, INFO_TOPIC, RGB_TOPIC  # noqa: E402
 from .io import json_safe  # noqa: E402
 
+ALIGN_CHOICES = ("se3", "sim3", "origin", "none")  # metrics.ALIGNMENTS (not imported at start)
+DELTA_UNIT_CHOICES = {"f": "frames", "s": "seconds", "m": "metres"}  # metrics.DELTA_UNITS
+
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
@@ -87,9 +90,36 @@ def _parser() -> argparse.ArgumentParser:
     ba.add_argument("--chunk", type=int, default=2, help="frames per run per device call")
     ba.add_argument("--max-frames", type=int, default=None, help="frames per sequence")
     ba.add_argument("--no-progress", action="store_true", help="no progress bar")
-    ev = sub.add_parser("eval", help="ATE and RPE of a trajectory against ground truth")
-    ev.add_argument("groundtruth", type=Path)
-    ev.add_argument("estimate", type=Path)
+    ev = sub.add_parser(
+        "eval", help="ATE and RPE of a trajectory against ground truth (as evo computes them)",
+        description="ATE (evo_ape's translation part) and RPE (evo_rpe's translation and "
+                    "rotation angle) of an estimated trajectory against ground truth, both TUM "
+                    "trajectory files (edgevo_jax.ate, edgevo_jax.rpe). evo's names: --align "
+                    "se3 / sim3 / origin / none is -a / -as / --align_origin / no option; "
+                    "--delta-unit f / m is evo's f / m (s, seconds, is not in evo; evo's d / r "
+                    "are not offered); --t-max-diff, --t-offset, --all-pairs and --delta-tol "
+                    "are evo's --t_max_diff, --t_offset, --all_pairs and --delta_tol.")
+    ev.add_argument("groundtruth", type=Path, help="ground-truth trajectory (TUM format)")
+    ev.add_argument("estimate", type=Path, help="estimated trajectory (TUM format)")
+    ev.add_argument("--align", choices=ALIGN_CHOICES, default="se3",
+                    help="how the estimate is aligned onto the ground truth: se3 rigid "
+                         "(TUM's ATE; the default), sim3 with scale, origin (first poses made "
+                         "equal), none; the RPE is aligned alike (only sim3 changes it)")
+    ev.add_argument("--delta", type=float, default=1.0,
+                    help="RPE: distance between the poses of a pair (default: 1)")
+    ev.add_argument("--delta-unit", choices=tuple(DELTA_UNIT_CHOICES), default="f",
+                    help="RPE: unit of --delta: f frames (default), s seconds, m metres of the "
+                         "estimate's path")
+    ev.add_argument("--all-pairs", action="store_true",
+                    help="RPE: a pair from every pose, not consecutive pairs")
+    ev.add_argument("--delta-tol", type=float, default=0.1,
+                    help="RPE with s or m and --all-pairs: relative tolerance of a pair's "
+                         "distance (default: 0.1)")
+    ev.add_argument("--t-max-diff", type=float, default=0.02, metavar="S",
+                    help="largest time difference of associated poses, seconds (default: 0.02,"
+                         " TUM's; evo's is 0.01)")
+    ev.add_argument("--t-offset", type=float, default=0.0, metavar="S",
+                    help="seconds added to the estimate's timestamps (default: 0)")
     ev.add_argument("--json", action="store_true", help="print JSON")
     _add_plot_parser(sub)
     return p
@@ -341,26 +371,48 @@ def _summary_text(stats: dict, out: Path) -> str:
 
 
 def _eval(args: argparse.Namespace) -> int:
-    from .io import read_trajectory
     from .metrics import ate, rpe
 
-    gt_t, gt_p = read_trajectory(args.groundtruth)
-    est_t, est_p = read_trajectory(args.estimate)
-    a = ate(gt_t, gt_p, est_t, est_p)
-    r = rpe(gt_t, gt_p, est_t, est_p)
-    result = {"ate_rmse_m": a["rmse"], "ate_pairs": a["n"], "rpe_rmse_m_per_s":
-              r["trans_rmse_m_per_s"], "rpe_rmse_deg_per_s": r["rot_rmse_deg_per_s"],
-              "rpe_pairs": r["n"]}
+    for option, value, low in (("--delta", args.delta, None), ("--t-max-diff", args.t_max_diff,
+                               None), ("--delta-tol", args.delta_tol, 0.0)):
+        if not (math.isfinite(value) and (value > 0 if low is None else value >= low)):
+            raise ValueError(f"{option} must be {'positive' if low is None else '>= 0'} and "
+                             f"finite, got {value:g}")
+    if args.delta_unit == "f" and args.delta != int(args.delta):
+        raise ValueError(f"--delta must be a whole number of frames with --delta-unit f, got "
+                         f"{args.delta:g}")
+    if not math.isfinite(args.t_offset):
+        raise ValueError(f"--t-offset must be finite, got {args.t_offset:g}")
+    gt, est = _read(args.groundtruth, "ground-truth"), _read(args.estimate, "estimated")
+    unit = DELTA_UNIT_CHOICES[args.delta_unit]
+    common = {"align": args.align, "max_diff": args.t_max_diff, "offset": args.t_offset}
+    a = ate(gt, est, **common)
+    r = rpe(gt, est, delta=args.delta, unit=unit, all_pairs=args.all_pairs,
+            delta_tol=args.delta_tol, **common)
     if args.json:
-        print(json.dumps(json_safe(result)))
+        options = {"align": args.align, "delta": args.delta, "delta_unit": unit,
+                   "all_pairs": args.all_pairs, "delta_tol": args.delta_tol,
+                   "t_max_diff": args.t_max_diff, "t_offset": args.t_offset}
+        print(json.dumps(json_safe({"ate": a, "rpe": r, "options": options})))
+        return 0
+    scale = f", scale {a['scale']:.6f}" if args.align == "sim3" else ""
+    print(f"ATE ({args.align} alignment{scale}, {a['n']} pairs; m)")
+    print("  " + _stat_line(a, ""))
+    what = (f"delta = {args.delta:g} ({unit})" + (", all pairs" if args.all_pairs else "")
+            + f", {r['n']} pairs")
+    if r["n"]:
+        print(f"RPE ({what}) translation, m")
+        print("  " + _stat_line(r, ""))
+        print("RPE rotation, deg")
+        print("  " + _stat_line(r, "rot_"))
     else:
-        print(f"ATE RMSE  {a['rmse']:.6f} m  ({a['n']} pairs)")
-        if r["n"]:
-            print(f"RPE RMSE  {r['trans_rmse_m_per_s']:.6f} m/s  "
-                  f"{r['rot_rmse_deg_per_s']:.4f} deg/s  ({r['n']} pairs, 1 s apart)")
-        else:
-            print("RPE       n/a (no pose pairs 1 s apart)")
+        print(f"RPE n/a (no pose pairs {args.delta:g} {unit} apart: the trajectory is shorter)")
     return 0
+
+
+def _stat_line(stats: dict, prefix: str) -> str:
+    return "  ".join(f"{k} {stats[prefix + k]:.6f}"
+                     for k in ("rmse", "mean", "median", "std", "min", "max"))
 
 
 def _plot(args: argparse.Namespace) -> int:

@@ -2,11 +2,10 @@
 numbers the solvers run on, and which of them are static or traced, are derived from it in
 one place only: ``derive.py`` (tracker, window, learnt Params).
 
-``Config`` is hashable (a jit static argument where it is one). Units: pixels of each
-pyramid level for the per-level tuples (``huber_delta``, ``max_residual``), metres for
-depths, 1/m for inverse depths, seconds for time. The defaults follow the EdgeVO paper (and
-DSO for the keyframe weights it adopts); where a default is this project's own, the reason
-and the measurements behind it are in ``docs/decisions.md``.
+``Config`` is hashable (a jit static argument where it is one). Each field's meaning, unit
+and default: the docstring under it, tabulated in ``docs/config.md``. The defaults follow the
+EdgeVO paper (and DSO for the keyframe weights it adopts); where a default is this project's
+own, the reason and the measurements behind it are in ``docs/decisions.md``.
 """
 
 from __future__ import annotations
@@ -19,69 +18,151 @@ SELECTIONS = ("spg", "all", "random", "greedy")
 
 @dataclass(frozen=True)
 class Config:
-    """Static configuration (hashable: it is a jit static argument)."""
+    """Static configuration of a run: every choice of the method, frozen and hashable (it is a
+    jit static argument where it is one).
+
+    Each field's meaning, unit, default and, where known, the reason for the default is the
+    docstring under it; ``docs/config.md`` tabulates them (written by
+    ``scripts/config_docs.py``; a test fails when a field has no entry or the table is stale).
+    The longer measurements behind the defaults are in ``docs/decisions.md``.
+
+    Change fields when making one, ``Config(num_edges=1024, mapping=False)``, or from an
+    existing one: ``config.replace(num_edges=1024)`` (``dataclasses.replace``). From the
+    command line: ``edgevo run --set num_edges=1024 --set iterations=10,10,5``
+    (:meth:`with_overrides`: each value parsed by the field's type; ``none`` for an optional
+    field). Invalid values raise ValueError naming the field.
+    """
 
     # --- preprocessing (host, OpenCV) ---
     blur_ksize: int = 5
+    """[px] Side of the Gaussian blur applied to the gray image before Canny (odd). Why: the
+    paper's 5 x 5."""
     blur_sigma: float = 1.0
+    """[px] Standard deviation of that blur. Why: the paper's sigma 1."""
     canny_low: float = 50.0
+    """[gradient] Canny's lower hysteresis threshold, on the L2 Sobel magnitude of the 0-255
+    gray image. Why: Canny's 1:2 ratio to ``canny_high``."""
     canny_high: float = 100.0
-    min_depth: float = 0.1  # metres; depth outside [min_depth, max_depth] counts as missing
+    """[gradient] Canny's upper threshold; also the paper's ``a``, the magnitude that edge
+    culling and the re-observation sigmoid use. Why: the paper's 100."""
+    min_depth: float = 0.1
+    """[m] Depths below this count as missing."""
     max_depth: float = 8.0
-    # --- edge selection (see selection.py) ---
-    selection: str = "spg"  # spg | all | random | greedy
-    num_edges: int = 512  # edges tracked per keyframe with spg / random / greedy
-    cell_size: int = 4  # partition grid (pixels) for spg; see the module doc
-    max_per_cell: int = 16  # candidate slots per partition (a seeded subset beyond that)
-    logdet_lambda: float = 1.0  # lambda in logdet(H(S) + lambda I)
-    greedy_epsilon: float = 0.1  # stochastic greedy: samples (N / k) log(1 / eps) per step
-    max_edges: int = 16384  # edge slots with selection=all (holds every culled edge at 640x480)
+    """[m] Depths above this count as missing."""
+    # --- edge selection (frontend/selection.py) ---
+    selection: str = "spg"
+    """[-] How keyframe edges are chosen: ``spg`` (stochastic partition greedy, the paper's
+    Algorithm 1), ``all``, ``random`` or ``greedy`` (stochastic greedy over all edges)."""
+    num_edges: int = 512
+    """[edges] Edges tracked per keyframe with spg / random / greedy. Why: keeps the solve well
+    under the preprocessing it overlaps on a 2-core CPU (``scripts/ablation_selection.py``)."""
+    cell_size: int = 4
+    """[px] Side of spg's partition grid. Why: many more non-empty partitions than the budget
+    even on weakly textured frames; coarser grids were worse on fr3_teddy
+    (``docs/ablation/``)."""
+    max_per_cell: int = 16
+    """[edges] Candidate slots per partition (a seeded subset beyond that)."""
+    logdet_lambda: float = 1.0
+    """[-] lambda in logdet(H(S) + lambda I), the selection's objective. Why: only regularises
+    the first picks (one edge's information is ~ (f / Z)^2 ~ 1e5)."""
+    greedy_epsilon: float = 0.1
+    """[-] Stochastic greedy's epsilon: (N / k) log(1 / epsilon) samples per step."""
+    max_edges: int = 16384
+    """[edges] Edge slots with ``selection="all"``. Why: holds every culled edge of a 640 x 480
+    frame."""
     # --- tracking (device) ---
-    iterations: tuple[int, ...] = (10, 10, 10)  # Gauss-Newton iterations at level 0, 1, 2
-    huber_delta: tuple[float, ...] = (1.0, 1.0, 1.0)  # pixels of each level
-    max_residual: tuple[float, ...] = (5.0, 5.0, 5.0)  # residual gate, pixels of each level
-    eta: float = 0.6  # gradient consistency: reject g(p) . g(p') < eta
-    step_tol: float = 1e-5  # stop a level once the update's norm is below this
-    max_rejects: int = 3  # stop a level after this many rejected LM tries in a row
-    min_inliers: int = 30  # fewer level-0 inliers than this: tracking lost
-    max_covariance_condition: float = 1e6  # lost beyond this condition number
-    recovery_keyframes: int = 3  # earlier keyframes tried after a loss
-    # inlier share: level-0 inliers per keyframe edge in view, against the highest of the
-    # last 5 frames' (what a correct alignment reaches here). Under doubt_share_ratio of it
-    # recovery tries other starts (keeping the best); under lost_share_ratio with no better
-    # start the frame is LOST (doubt_share_ratio 0: no check)
+    iterations: tuple[int, ...] = (10, 10, 10)
+    """[iterations] Levenberg-Marquardt iterations at pyramid level 0, 1, 2, ...; its length is
+    the number of levels. Why: the paper's 3 levels."""
+    huber_delta: tuple[float, ...] = (1.0, 1.0, 1.0)
+    """[px of each level] Huber radius of the edge residual, one per level."""
+    max_residual: tuple[float, ...] = (5.0, 5.0, 5.0)
+    """[px of each level] Residuals beyond this are outliers (the gate), one per level."""
+    eta: float = 0.6
+    """[-] Gradient consistency: a point is rejected when g(p) . g(p') < eta (unit gradients
+    of keyframe and frame). Why: the paper's 0.6."""
+    step_tol: float = 1e-5
+    """[-] A level stops once the norm of its update twist is below this."""
+    max_rejects: int = 3
+    """[tries] A level stops after this many rejected LM tries in a row. Why: the third asks for
+    a step ~1000x shorter than Gauss-Newton's; fr3_teddy ATE 8.3 against 9.1 mm with the
+    iteration budget (``docs/decisions.md``)."""
+    min_inliers: int = 30
+    """[points] Fewer level-0 inliers than this: tracking is lost."""
+    max_covariance_condition: float = 1e6
+    """[-] Condition number of the pose covariance beyond which tracking is lost. Why: frames
+    tracked well give 40-400 on TUM."""
+    recovery_keyframes: int = 3
+    """[keyframes] Earlier keyframes tried after a loss."""
     doubt_share_ratio: float = 0.8
+    """[-] Inlier share (level-0 inliers per keyframe edge in view) below this fraction of the
+    highest of the last 5 frames': recovery tries other starts and keeps the best (0: no
+    check). Why: ``docs/decisions.md``, "Never silently wrong"."""
     lost_share_ratio: float = 0.5
-    recovery_features: bool = True  # recovery also starts from SIFT + PnP (features.py)
-    # point-to-plane ICP of keyframe depth points added to the edge residual (depth.py)
-    # (at the finest level, where the edges have brought the pose into its basin)
+    """[-] Inlier share below this fraction of the recent highest, with no better start found:
+    the frame is LOST."""
+    recovery_features: bool = True
+    """[-] Recovery also starts from image features (ORB, then SIFT, matched, PnP;
+    ``frontend/features.py``)."""
     depth_residual: bool = True
-    depth_points: int = 256  # keyframe depth points with depth_residual
-    # rolling shutter: the rgb camera's readout time, top row to bottom row (s); 0: a global
-    # shutter; None: the camera's own (the source's readout_s; frontend/shutter.py)
+    """[-] Point-to-plane ICP of keyframe depth points added to the edge residual at the finest
+    level, once the edges have brought the pose into its basin (``frontend/depth.py``). Why:
+    ``docs/decisions.md``, "The depth residual"."""
+    depth_points: int = 256
+    """[points] Keyframe depth points with ``depth_residual``."""
     readout_s: float | None = None
+    """[s] Rolling shutter: the rgb camera's readout time, top row to bottom row; 0: a global
+    shutter; None: the camera's own (the source's ``readout_s``; ``frontend/shutter.py``)."""
     # --- keyframes (host) ---
-    kf_flow_weight: float = 0.02  # w1, on RMS flow (px)
-    kf_flow_t_weight: float = 0.04  # w2, on RMS flow without rotation (px)
+    kf_flow_weight: float = 0.02
+    """[1/px] w1 of the keyframe rule w1 t + w2 t' > 1, on the RMS optical flow t. Why: DSO's
+    weight, a new keyframe after ~50 px of flow."""
+    kf_flow_t_weight: float = 0.04
+    """[1/px] w2, on the RMS flow t' without rotation. Why: DSO's weight, ~25 px of
+    translational flow."""
     kf_min_inlier_ratio: float = 0.3
+    """[-] A new keyframe when a frame's correspondences (level-0 inliers) fall under this
+    fraction of their running average (the paper's)."""
     kf_max_interval_s: float = 1.0
-    # --- local mapping (local_map.py) ---
-    mapping: bool = True  # the sliding window of keyframes (backend)
-    window_size: int = 6  # keyframes (paper: 5-7)
-    active_per_keyframe: int = 256  # active edge slots each keyframe brings to the window
-    activation_cell: int = 20  # px (paper)
-    activation_max_angle_deg: float = 30.0  # gradient agreement for activation (paper)
-    # frames after a keyframe at which tracking takes its refined pose from the window, which
-    # runs beside tracking on a worker thread (pipeline/mapping.py); 0: inline
+    """[s] A new keyframe at the latest this long after the last one (the paper's)."""
+    # --- local mapping (backend/local_map.py) ---
+    mapping: bool = True
+    """[-] The sliding window of keyframes (the backend). Why: the paper's method; fr3_teddy
+    ATE 8.6 -> 6.7 mm over seeds 0-8."""
+    window_size: int = 6
+    """[keyframes] Keyframes in the window. Why: the paper's 5-7."""
+    active_per_keyframe: int = 256
+    """[edges] Active edge slots each keyframe brings to the window. Why: half the tracked ones
+    keeps one LM try at a few ms."""
+    activation_cell: int = 20
+    """[px] Cell of the window's activation grid (the paper's)."""
+    activation_max_angle_deg: float = 30.0
+    """[deg] Gradient agreement for activation (the paper's)."""
     mapping_lag: int = 4
-    mapping_iterations: int = 5  # pose-only LM tries, then as many joint ones
-    mapping_intrinsics: bool = False  # refine fx, fy, cx, cy in the window, track with them
-    drop_visible_ratio: float = 0.05  # a keyframe with fewer edges in view of the newest goes
-    mapping_depth_sigma: float = 0.01  # 1/m: the sensor's inverse depth as a prior (0: none)
-    activation_depth_step: float = 0.0105  # 1/m: planarity of the depth across an edge (0: off)
-    activation_depth_reach: int = 5  # px to either side of an edge that the depth test reads
+    """[frames] Frames after a keyframe at which tracking takes its refined pose from the
+    window, which runs beside tracking on a worker thread (``pipeline/mapping.py``); 0:
+    inline. Why: the window step takes ~4-6 frames' time on 2 cores."""
+    mapping_iterations: int = 5
+    """[tries] Pose-only LM tries in the window, then as many joint ones."""
+    mapping_intrinsics: bool = False
+    """[-] Refine fx, fy, cx, cy in the window and track with them."""
+    drop_visible_ratio: float = 0.05
+    """[-] A keyframe with fewer than this fraction of its edges in view of the newest leaves
+    the window. Why: DSO's rule."""
+    mapping_depth_sigma: float = 0.01
+    """[1/m] Standard deviation of the sensor's inverse depth as a prior in the window (0: no
+    prior). Why: the Kinect's disparity noise inflated for registration; 0.03 was worse on
+    fr3_teddy."""
+    activation_depth_step: float = 0.0105
+    """[1/m] Only edges on continuous depth join the window: the inverse depth beside an edge
+    must be planar within this (0: no test). Why: three standard deviations of the second
+    difference under the Kinect's disparity noise."""
+    activation_depth_reach: int = 5
+    """[px] How far to either side of an edge the depth test reads. Why: a depth step spreads
+    up to 4 px (9 x 9 matching windows), plus a pixel of Canny localisation."""
     # --- determinism ---
     seed: int = 0
+    """[-] Seed of the edge selection's random choices (keyframe k draws with seed + k)."""
 
     def __post_init__(self) -> None:
         n = self.num_levels

@@ -289,7 +289,7 @@ def accuracy(seq: Any, timestamps: np.ndarray, poses: np.ndarray) -> dict[str, A
     """ATE RMSE (m) and RPE translation RMSE (m/s; NaN for clips under 1 s) of T_world_cam
     ``poses`` (N, 4, 4) against the sequence's ground truth."""
     from edgevo_jax.io import matrices_to_poses7
-    from edgevo_jax.metrics import ate, rpe
+    from edgevo_jax.metrics import ate, rpe_per_second
 
     out: dict[str, Any] = {"ate_rmse_m": math.nan, "rpe_m_per_s": math.nan}
     if seq.groundtruth is None:
@@ -298,9 +298,10 @@ def accuracy(seq: Any, timestamps: np.ndarray, poses: np.ndarray) -> dict[str, A
     gt_t, gt_p = seq.groundtruth
     est = matrices_to_poses7(poses)
     try:
-        out["ate_rmse_m"] = ate(gt_t, gt_p, timestamps, est)["rmse"]
+        out["ate_rmse_m"] = ate((gt_t, gt_p), (timestamps, est))["rmse"]
         if timestamps.size and timestamps[-1] - timestamps[0] >= 1.0:
-            out["rpe_m_per_s"] = rpe(gt_t, gt_p, timestamps, est)["trans_rmse_m_per_s"]
+            out["rpe_m_per_s"] = rpe_per_second((gt_t, gt_p), (timestamps, est))[
+                "trans_rmse_m_per_s"]
         else:
             out["accuracy_note"] = "RPE n/a: clip shorter than 1 s"
     except ValueError as err:  # e.g. fewer than 3 poses associated with the ground truth

@@ -252,8 +252,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     config = Config(seed=args.seed).with_overrides(args.set)
     rows, run = record(seq, config)
     summary = summarise(rows)
-    summary["ate_rmse_m"] = float(ate(*seq.groundtruth, run.timestamps,
-                                      matrices_to_poses7(run.poses))["rmse"])
+    summary["ate_rmse_m"] = float(ate(seq.groundtruth,
+                                      (run.timestamps, matrices_to_poses7(run.poses)))["rmse"])
     summary["keyframes"] = run.num_keyframes
     result = {"command": shlex.join(["python", "scripts/error_anatomy.py", *argv]),
               "machine": machine_info(), "sequence": seq.name, "config_overrides": args.set,

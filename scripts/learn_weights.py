@@ -42,9 +42,9 @@ only) and ``log_temperature`` (the other differentiable path's) stay at their de
 Report (printed, and written to ``--out-json``): the pair RPE of the training model over the
 held-out and the training pairs (mean and median translation error in mm, rotation in deg)
 with ``Params.default`` and with the fitted Params; the ATE and the RPE per second
-(``metrics.rpe``) of full runs of the plain tracker (``runner.run_sequence``, hard decisions,
-the same config) over the held-out frames of each sequence, with the default and the fitted
-Params (``--no-ate`` skips them; several held-out parts: their mean, each part under
+(``metrics.rpe_per_second``) of full runs of the plain tracker (``runner.run_sequence``, hard
+decisions, the same config) over the held-out frames of each sequence, with the default and the
+fitted Params (``--no-ate`` skips them; several held-out parts: their mean, each part under
 ``parts``), and with ``--control-runs N`` N more with the defaults moved along random
 directions by as much as the fit moved them; the training loss per step (plotted to
 ``--out-png``); the learnt weight against each input of the weighting model (plotted to

@@ -33,7 +33,7 @@ from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets.pingpong import pingpong
 from edgevo_jax.datasets.tum import SHARED_TUM, TumSequence, load_sequence
 from edgevo_jax.io import json_safe, matrices_to_poses7
-from edgevo_jax.metrics import associate_timestamps
+from edgevo_jax.metrics import ate
 from edgevo_jax.pipeline.run import enable_compilation_cache, run_sequence, summarise
 from edgevo_jax.provenance import machine_info
 
@@ -50,19 +50,11 @@ def load(spec: str) -> TumSequence:
 def similarity_ate(seq: TumSequence, timestamps: np.ndarray, poses: np.ndarray
                    ) -> tuple[float, float]:
     """(RMSE after a similarity alignment (m), its scale) of positions against the ground
-    truth, associated as the ATE does (Umeyama 1991 with scale)."""
-    gt_t, gt_p = seq.groundtruth
-    pairs = associate_timestamps(gt_t, np.asarray(timestamps), 0.02)
-    y = gt_p[pairs[:, 0], :3]
-    x = matrices_to_poses7(np.asarray(poses))[pairs[:, 1], :3]
-    xc, yc = x - x.mean(0), y - y.mean(0)
-    u, s, vt = np.linalg.svd(yc.T @ xc / len(x))
-    d = np.ones(3)
-    d[2] = np.sign(np.linalg.det(u @ vt))
-    rot = u @ np.diag(d) @ vt
-    scale = float((s * d).sum() / (xc**2).sum(1).mean())
-    err = scale * xc @ rot.T - yc
-    return float(np.sqrt((err**2).sum(1).mean())), scale
+    truth, associated as the ATE does (``ate(..., align="sim3")``: Umeyama 1991 with
+    scale)."""
+    a = ate(seq.groundtruth, (np.asarray(timestamps), matrices_to_poses7(np.asarray(poses))),
+            align="sim3")
+    return a["rmse"], a["scale"]
 
 
 def parse_variant(spec: str) -> tuple[str, list[str]]:

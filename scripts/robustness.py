@@ -56,7 +56,7 @@ def run(seq: TumSequence, config: Config, keep: np.ndarray) -> dict:
     gt_t, gt_p = seq.groundtruth
     est = matrices_to_poses7(poses[keep])
     flags = Counter(f"{r.state}: {r.reason}" for r in result.results if r.state != "OK")
-    return {"ate_rmse_m": ate(gt_t, gt_p, result.timestamps[keep], est)["rmse"],
+    return {"ate_rmse_m": ate((gt_t, gt_p), (result.timestamps[keep], est))["rmse"],
             "frames": len(result.results), "non_finite_poses": int((~np.isfinite(poses)).sum()),
             "flagged": dict(flags), "keyframes": result.num_keyframes}
 

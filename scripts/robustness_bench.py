@@ -22,8 +22,8 @@ frames; ``--max-frames`` keeps the frames up to the full sequence's frame N) and
 - by each ``--peers`` method of ``scripts/bench.py`` (its ``make_peer`` and ``track_peer``:
   frame to frame from edgevo's first pose; deterministic, so one run per k).
 
-Per run: ATE RMSE (m, ``metrics.ate``), RPE (``metrics.rpe`` over 1 s: m/s and deg/s; null
-when the clip spans under 1 s), the frames per state (edgevo: OK / WEAK / LOST; peers: a
+Per run: ATE RMSE (m, ``metrics.ate``), RPE (``metrics.rpe_per_second`` over 1 s: m/s and
+deg/s; null when the clip spans under 1 s), the frames per state (edgevo: OK / WEAK / LOST; peers: a
 pair whose ``compute`` fails is LOST, every other frame OK), the **silently diverged**
 frames (:func:`diverged_frames`) and the mean / median ms per frame over warm frames (the
 first two skipped; image decoding excluded, as in bench.py). Per (sequence, method, k) over
@@ -54,7 +54,7 @@ from edgevo_jax.datasets import groundtruth_pose_at, load_sequence, subsequence
 from edgevo_jax.datasets.tum import SHARED_TUM, EmptyDepthWarning, TumSequence
 from edgevo_jax.geometry import inverse_np, rotation_angle_np
 from edgevo_jax.io import json_safe, matrices_to_poses7, poses7_to_matrices
-from edgevo_jax.metrics import ate, rpe
+from edgevo_jax.metrics import ate, rpe_per_second
 from edgevo_jax.provenance import machine_info
 
 DEFAULT_SEQUENCE = SHARED_TUM / "rgbd_dataset_freiburg3_teddy_first200"
@@ -186,9 +186,9 @@ def score_run(timestamps: np.ndarray, poses: np.ndarray, states: Sequence[str],
         return out
     est = matrices_to_poses7(np.asarray(poses, np.float64))
     try:
-        out["ate_rmse_m"] = float(ate(*groundtruth, ts, est)["rmse"])
+        out["ate_rmse_m"] = float(ate(groundtruth, (ts, est))["rmse"])
         if ts.size and ts[-1] - ts[0] >= 1.0:
-            r = rpe(*groundtruth, ts, est)
+            r = rpe_per_second(groundtruth, (ts, est))
             out["rpe_m_per_s"] = float(r["trans_rmse_m_per_s"])
             out["rpe_deg_per_s"] = float(r["rot_rmse_deg_per_s"])
         else:

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from edgevo_jax.io import matrices_to_poses7, quat_to_rotmat
-from edgevo_jax.metrics import associate_timestamps, ate, horn_align, rpe
+from edgevo_jax.metrics import associate_timestamps, ate, horn_align, rpe_per_second
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:
@@ -196,7 +196,7 @@ def test_ate_hand_computed():
     quat = np.tile([0.0, 0.0, 0.0, 1.0], (8, 1))
     gt_poses = np.concatenate([gt_xyz, quat[:6]], axis=1)
     est_poses = np.concatenate([est_xyz, quat], axis=1)
-    res = ate(gt_t, gt_poses, est_t, est_poses)
+    res = ate((gt_t, gt_poses), (est_t, est_poses))
     assert res["n"] == 6
     # |e| = d, d, 0, 0, d, d.
     assert res["rmse"] == pytest.approx(d * math.sqrt(4 / 6), abs=1e-12)
@@ -220,7 +220,7 @@ def test_ate_random_orthogonal_errors():
     ts = np.arange(n) / 30.0
     gt_poses = make_poses7(np.tile(np.eye(3), (n, 1, 1)), gt_xyz)
     est_poses = make_poses7(np.tile(np.eye(3), (n, 1, 1)), est_xyz)
-    res = ate(ts, gt_poses, ts, est_poses)
+    res = ate((ts, gt_poses), (ts, est_poses))
     norms = np.linalg.norm(e, axis=1)
     assert res["n"] == n
     assert res["rmse"] == pytest.approx(math.sqrt(np.mean(norms**2)), rel=1e-9)
@@ -232,14 +232,14 @@ def test_ate_perfect_and_too_few_pairs():
     rng = np.random.default_rng(3)
     ts = np.arange(10) * 0.1
     gt_poses = make_poses7(np.tile(np.eye(3), (10, 1, 1)), rng.normal(size=(10, 3)))
-    res = ate(ts, gt_poses, ts, gt_poses)
+    res = ate((ts, gt_poses), (ts, gt_poses))
     assert res["rmse"] == pytest.approx(0.0, abs=1e-12) and res["n"] == 10
     with pytest.raises(ValueError, match="at least 3 associated"):
-        ate(ts, gt_poses, ts[:2] + 0.001, gt_poses[:2])
+        ate((ts, gt_poses), (ts[:2] + 0.001, gt_poses[:2]))
     with pytest.raises(ValueError, match="at least 3 associated"):
-        ate(ts, gt_poses, ts + 5.0, gt_poses)
+        ate((ts, gt_poses), (ts + 5.0, gt_poses))
     with pytest.raises(ValueError, match="shape"):
-        ate(ts, gt_poses[:5], ts, gt_poses)
+        ate((ts, gt_poses[:5]), (ts, gt_poses))
 
 
 def test_ate_matches_evo():
@@ -255,7 +255,7 @@ def test_ate_matches_evo():
     r, t = random_rotation(rng), rng.normal(size=3)
     est_xyz = (gt_xyz + rng.normal(scale=0.02, size=(n, 3))) @ r.T + t
     est_poses = make_poses7(rots, est_xyz)
-    ours = ate(ts, gt_poses, ts + 0.003, est_poses)
+    ours = ate((ts, gt_poses), (ts + 0.003, est_poses))
 
     def to_evo(stamps, poses):
         wxyz = np.roll(poses[:, 3:], 1, axis=1)
@@ -287,7 +287,7 @@ def test_rpe_identical_is_zero():
     rng = np.random.default_rng(1)
     ts, rots, pos = smooth_gt(100, 25.0, rng)
     poses = make_poses7(rots, pos)
-    res = rpe(ts, poses, ts, poses)
+    res = rpe_per_second((ts, poses), (ts, poses))
     assert res["n"] == 87  # t_i <= 3.44 s has a partner >= 0.5 s later (the end is 3.96 s)
     assert res["trans_rmse_m_per_s"] == pytest.approx(0.0, abs=1e-9)
     assert res["rot_rmse_deg_per_s"] == pytest.approx(0.0, abs=1e-6)
@@ -298,7 +298,7 @@ def test_rpe_is_invariant_to_the_estimate_world_frame():
     ts, rots, pos = smooth_gt(60, 30.0, rng)
     w, tw = random_rotation(rng), np.array([3.0, -1.0, 2.0])
     est = make_poses7(w @ rots, pos @ w.T + tw)
-    res = rpe(ts, make_poses7(rots, pos), ts + 0.002, est, delta=0.5)
+    res = rpe_per_second((ts, make_poses7(rots, pos)), (ts + 0.002, est), delta=0.5)
     assert res["n"] > 0
     assert res["trans_rmse_m_per_s"] == pytest.approx(0.0, abs=1e-9)
     assert res["rot_rmse_deg_per_s"] == pytest.approx(0.0, abs=1e-6)
@@ -311,13 +311,14 @@ def test_rpe_constant_extra_velocity():
     ts, rots, pos = smooth_gt(100, 25.0, rng)
     est_t = ts + 0.003
     est_pos = pos + np.outer(0.1 * (est_t - est_t[0]), [1.0, 0.0, 0.0])
-    res = rpe(ts, make_poses7(rots, pos), est_t, make_poses7(rots, est_pos))
+    res = rpe_per_second((ts, make_poses7(rots, pos)), (est_t, make_poses7(rots, est_pos)))
     assert res["n"] == 87
     assert res["trans_rmse_m_per_s"] == pytest.approx(0.1, rel=1e-9)
     assert res["rot_rmse_deg_per_s"] == pytest.approx(0.0, abs=1e-6)
     # Row order of the inputs does not matter.
     p, q = rng.permutation(100), rng.permutation(100)
-    res2 = rpe(ts[q], make_poses7(rots, pos)[q], est_t[p], make_poses7(rots, est_pos)[p])
+    res2 = rpe_per_second((ts[q], make_poses7(rots, pos)[q]),
+                          (est_t[p], make_poses7(rots, est_pos)[p]))
     assert res2 == pytest.approx(res)
 
 
@@ -328,7 +329,8 @@ def test_rpe_constant_extra_rotation_rate():
     ts = np.arange(n) / 30.0
     pos = np.stack([np.zeros(n), np.zeros(n), 0.3 * ts], axis=1)
     yaw = np.stack([rot_z(math.radians(5.0) * t) for t in ts])
-    res = rpe(ts, make_poses7(np.tile(np.eye(3), (n, 1, 1)), pos), ts, make_poses7(yaw, pos))
+    res = rpe_per_second((ts, make_poses7(np.tile(np.eye(3), (n, 1, 1)), pos)),
+                         (ts, make_poses7(yaw, pos)))
     assert res["n"] > 0
     assert res["rot_rmse_deg_per_s"] == pytest.approx(5.0, rel=1e-9)
     assert res["trans_rmse_m_per_s"] == pytest.approx(0.0, abs=1e-9)
@@ -342,12 +344,12 @@ def test_rpe_error_definition_by_hand():
     ts = np.array([0.0, 1.0])
     gt = make_poses7(np.stack([np.eye(3), np.eye(3)]), np.array([[0, 0, 0], [1.0, 0, 0]]))
     est = make_poses7(np.stack([np.eye(3), rot_z(math.pi / 2)]), np.array([[0, 0, 0], [1.0, 0, 0]]))
-    res = rpe(ts, gt, ts, est, delta=1.0)
+    res = rpe_per_second((ts, gt), (ts, est), delta=1.0)
     assert res["n"] == 1
     assert res["trans_rmse_m_per_s"] == pytest.approx(0.0, abs=1e-12)
     assert res["rot_rmse_deg_per_s"] == pytest.approx(90.0, rel=1e-12)
     # Over 2 s (est timestamps doubled) the same errors are halved per second.
-    res = rpe(ts * 2, gt, ts * 2, est, delta=2.0)
+    res = rpe_per_second((ts * 2, gt), (ts * 2, est), delta=2.0)
     assert res["rot_rmse_deg_per_s"] == pytest.approx(45.0, rel=1e-12)
 
 
@@ -358,7 +360,7 @@ def test_rpe_ignores_estimates_without_ground_truth():
     est = make_poses7(rots, pos)
     hole = ~gt_keep
     est[hole, :3] += rng.normal(scale=5.0, size=(int(hole.sum()), 3))  # garbage there
-    res = rpe(ts[gt_keep], make_poses7(rots[gt_keep], pos[gt_keep]), ts, est)
+    res = rpe_per_second((ts[gt_keep], make_poses7(rots[gt_keep], pos[gt_keep])), (ts, est))
     assert res["n"] > 0
     assert res["trans_rmse_m_per_s"] == pytest.approx(0.0, abs=1e-9)
 
@@ -367,10 +369,10 @@ def test_rpe_shorter_than_delta_is_nan():
     rng = np.random.default_rng(8)
     ts, rots, pos = smooth_gt(10, 30.0, rng)  # 0.3 s long
     poses = make_poses7(rots, pos)
-    res = rpe(ts, poses, ts, poses, delta=1.0)
+    res = rpe_per_second((ts, poses), (ts, poses), delta=1.0)
     assert res["n"] == 0
     assert math.isnan(res["trans_rmse_m_per_s"]) and math.isnan(res["rot_rmse_deg_per_s"])
-    res = rpe(ts, poses, ts + 10.0, poses)  # nothing associates
+    res = rpe_per_second((ts, poses), (ts + 10.0, poses))  # nothing associates
     assert res["n"] == 0 and math.isnan(res["trans_rmse_m_per_s"])
     with pytest.raises(ValueError, match="delta"):
-        rpe(ts, poses, ts, poses, delta=0.0)
+        rpe_per_second((ts, poses), (ts, poses), delta=0.0)

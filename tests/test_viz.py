@@ -128,7 +128,7 @@ def test_align_trajectory_matches_ate() -> None:
     gt_t, gt_p, est_t, est_p = synthetic_trajectories()
     al = align_trajectory(gt_t, gt_p, est_t, est_p)
     assert al.error.shape == (est_t.size,) and al.est_xyz.shape == (3, est_t.size)
-    assert al.rmse == pytest.approx(ate(gt_t, gt_p, est_t, est_p)["rmse"], rel=1e-12)
+    assert al.rmse == pytest.approx(ate((gt_t, gt_p), (est_t, est_p))["rmse"], rel=1e-12)
     assert 0.005 < al.rmse < 0.03  # the 1 cm noise, not the 2 m frame offset
     np.testing.assert_allclose(al.est_xyz[:, 0], gt_p[0, :3], atol=0.05)
 

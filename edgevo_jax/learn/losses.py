@@ -67,7 +67,7 @@ def window_rpe_loss(
 
     T_est, T_gt (N, 4, 4): each frame's pose in one fixed frame, T_ref_cam (world poses, or
     inv(T_c_k) of frames tracked against a keyframe); the motion i -> j is P_i^-1 P_j, as
-    TUM's RPE takes it (``metrics.rpe``, here per pair and not per second). ``valid`` (N,)
+    TUM's and evo's RPE take it (``metrics.rpe``). ``valid`` (N,)
     bool: frames to use (a pair counts when both are valid; 0 when none does)."""
     n = T_est.shape[0]
     pairs = [(i, i + d) for d in deltas for i in range(n - d)]

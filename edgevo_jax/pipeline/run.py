@@ -35,7 +35,7 @@ from ..image.interp import stack_edge_maps
 from ..image.preprocess import Frame, start_preprocess
 from ..io import TrajectoryWriter, matrices_to_poses7, poses7_to_matrices
 from ..learn.params import Params
-from ..metrics import ate, rpe
+from ..metrics import ate, rpe_per_second
 from ..programs import keep_programs
 from .odometry import Odometry
 from .results import LOST, OK, WEAK, FrameResult, FrameResults
@@ -294,8 +294,8 @@ def summarise(run: FrameResults, seq: Source) -> dict:
         gt_t, gt_p = seq.groundtruth
         est = matrices_to_poses7(run.poses)
         try:
-            stats["ate_rmse_m"] = ate(gt_t, gt_p, run.timestamps, est)["rmse"]
-            r = rpe(gt_t, gt_p, run.timestamps, est)
+            stats["ate_rmse_m"] = ate((gt_t, gt_p), (run.timestamps, est))["rmse"]
+            r = rpe_per_second((gt_t, gt_p), (run.timestamps, est))
             stats["rpe_rmse_m_per_s"] = r["trans_rmse_m_per_s"]
             stats["rpe_rmse_deg_per_s"] = r["rot_rmse_deg_per_s"]
         except ValueError as err:  # e.g. no timestamps in common with the ground truth

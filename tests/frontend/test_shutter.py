@@ -159,7 +159,7 @@ def test_the_shutter_model_cuts_the_drift_on_the_fast_clip(shared_clip):
     scores = []
     for config in (Config(), Config(readout_s=0.0)):
         run = run_sequence(seq, config, progress=False)
-        scores.append(ate(*seq.groundtruth, run.timestamps, matrices_to_poses7(run.poses))
+        scores.append(ate(seq.groundtruth, (run.timestamps, matrices_to_poses7(run.poses)))
                       ["rmse"])
     assert scores[0] < 0.6 * scores[1], scores
 

@@ -292,20 +292,20 @@ def test_ate_loss_is_tum_ate_and_its_gradient_is_exact():
         gt = random_trajectory(rng, 12)
         est = random_trajectory(np.random.default_rng(5), 12, noise=0.02)
         ts = np.arange(12) * 0.1
-        ref = ate(ts, matrices_to_poses7(gt), ts, matrices_to_poses7(est))["rmse"]
+        ref = ate((ts, matrices_to_poses7(gt)), (ts, matrices_to_poses7(est)))["rmse"]
         np.testing.assert_allclose(ate_loss(jnp.asarray(est), jnp.asarray(gt)), ref, rtol=1e-10)
         # a mirror image: the best orthogonal map is a reflection, TUM's fix keeps a rotation
         mirrored = est.copy()
         mirrored[:, 0, 3] *= -1.0
         R, _ = rigid_alignment(jnp.asarray(mirrored[:, :3, 3]), jnp.asarray(gt[:, :3, 3]))
         assert abs(float(jnp.linalg.det(R)) - 1.0) < 1e-12
-        ref_m = ate(ts, matrices_to_poses7(gt), ts, matrices_to_poses7(mirrored))["rmse"]
+        ref_m = ate((ts, matrices_to_poses7(gt)), (ts, matrices_to_poses7(mirrored)))["rmse"]
         np.testing.assert_allclose(ate_loss(jnp.asarray(mirrored), jnp.asarray(gt)), ref_m,
                                    rtol=1e-10)
         # masked poses are left out
         valid = np.arange(12) % 3 != 0
-        ref_v = ate(ts[valid], matrices_to_poses7(gt[valid]), ts[valid],
-                    matrices_to_poses7(est[valid]))["rmse"]
+        ref_v = ate((ts[valid], matrices_to_poses7(gt[valid])),
+                    (ts[valid], matrices_to_poses7(est[valid])))["rmse"]
         np.testing.assert_allclose(ate_loss(jnp.asarray(est), jnp.asarray(gt),
                                             valid=jnp.asarray(valid)), ref_v, rtol=1e-10)
         # rigidly moved truth

@@ -118,7 +118,7 @@ def test_cli_run_writes_trajectory_and_stats(tmp_path, capsys):
     gt = BUNDLED_CLIP / "groundtruth.txt"
     assert main(["eval", str(gt), str(out), "--json"]) == 0
     ev = json.loads(capsys.readouterr().out)
-    assert ev["ate_rmse_m"] == pytest.approx(stats["ate_rmse_m"], abs=1e-6)
+    assert ev["ate"]["rmse"] == pytest.approx(stats["ate_rmse_m"], abs=1e-6)
 
 
 def test_cli_reports_bad_input_clearly(tmp_path, capsys):
