@@ -1,8 +1,9 @@
 """edgevo_jax: edge-based RGB-D visual odometry (EdgeVO) in JAX.
 
 The public API: ``Config`` and ``Intrinsics`` (what a run needs), ``Odometry`` (the
-streaming tracker; ``FrameResult`` per frame), ``run`` (a whole sequence, with its
-trajectory file) and ``evaluate`` (many sequences under many configurations, batched),
+streaming tracker; ``FrameResult`` per frame), ``align`` (one frame pair from an initial
+guess: success, transform, information; ``AlignResult``), ``run`` (a whole sequence, with
+its trajectory file) and ``evaluate`` (many sequences under many configurations, batched),
 ``load_sequence`` (TUM-style folders), ``summarise`` (a run's statistics and ATE / RPE),
 ``Pose`` (the SE(3) pose type of device code) and ``enable_batch_exact``. Importing the
 package changes no process-wide setting: ``enable_batch_exact`` turns on batch-size-exact
@@ -22,9 +23,10 @@ from .determinism import enable_batch_exact
 from .geometry import Pose
 from .pipeline.batch import evaluate
 from .pipeline.odometry import FrameResult, Odometry
+from .pipeline.pair import AlignResult, align
 from .pipeline.run import run_sequence as run
 from .pipeline.run import summarise
 
-__all__ = ["Config", "FrameResult", "Intrinsics", "Odometry", "Pose", "enable_batch_exact",
-           "evaluate", "load_sequence", "run", "summarise"]
+__all__ = ["AlignResult", "Config", "FrameResult", "Intrinsics", "Odometry", "Pose", "align",
+           "enable_batch_exact", "evaluate", "load_sequence", "run", "summarise"]
 __version__ = "0.1.0"

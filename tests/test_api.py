@@ -9,13 +9,14 @@ import sys
 
 import edgevo_jax
 
-API = ["Config", "FrameResult", "Intrinsics", "Odometry", "Pose", "enable_batch_exact",
-       "evaluate", "load_sequence", "run", "summarise"]
+API = ["AlignResult", "Config", "FrameResult", "Intrinsics", "Odometry", "Pose", "align",
+       "enable_batch_exact", "evaluate", "load_sequence", "run", "summarise"]
 #: the leading data arguments each API function takes positionally; everything after is an
 #: option, keyword-only
 POSITIONAL = {"Odometry": ("config", "intrinsics"), "evaluate": ("sequences", "configs"),
               "load_sequence": ("path",), "run": ("seq", "config"), "summarise": ("run", "seq"),
-              "enable_batch_exact": ()}
+              "enable_batch_exact": (),
+              "align": ("source_rgb", "source_depth", "target_rgb", "target_depth")}
 
 
 def test_the_namespace_is_curated():
