@@ -1,13 +1,14 @@
 """edgevo_jax: edge-based RGB-D visual odometry (EdgeVO) in JAX.
 
 The public API: ``Config`` and ``Intrinsics`` (what a run needs), ``Odometry`` (the
-streaming tracker; ``FrameResult`` per frame), ``align`` (one frame pair from an initial
-guess: success, transform, information; ``AlignResult``), ``run`` (a whole sequence, with
-its trajectory file) and ``evaluate`` (many sequences under many configurations, batched),
-``load_sequence`` (TUM-style folders), ``summarise`` (a run's statistics and ATE / RPE),
-``Pose`` (the SE(3) pose type of device code) and ``enable_batch_exact``. Importing the
-package changes no process-wide setting: ``enable_batch_exact`` turns on batch-size-exact
-CPU arithmetic (the ``edgevo`` CLI does).
+streaming tracker, with per-frame motion priors and ``reset``; ``FrameResult`` per frame),
+``align`` (one frame pair from an initial guess: success, transform, information;
+``AlignResult``), ``run`` (a whole sequence, with its trajectory file) and ``evaluate``
+(many sequences under many configurations, batched), ``load_sequence`` (TUM-style
+folders), ``summarise`` (a run's statistics and ATE / RPE), ``Pose`` (the SE(3) pose type
+of device code) and ``enable_batch_exact``. Importing the package changes no process-wide
+setting: ``enable_batch_exact`` turns on batch-size-exact CPU arithmetic (the ``edgevo``
+CLI does).
 
 Layout: ``image`` (preprocessing, interpolation), ``frontend`` (residual, alignment,
 selection, keyframes), ``backend`` (the window, Schur complement, marginalisation),
