@@ -150,9 +150,9 @@ class Odometry:
         frame's motion T_prev_cur (class doc; None: constant velocity). ValueError naming
         the problem for arrays of the wrong kind or size and a prior that is no rigid
         transform (before any JAX code runs)."""
-        self._check_frame(rgb, depth, timestamp)
-        if prior is not None:  # refused before the preprocessing (``submit`` takes it)
+        if prior is not None:  # refused before the frame is looked at (``submit`` takes it)
             rigid_transform(prior, name="prior")
+        self._check_frame(rgb, depth, timestamp)
         t0 = time.perf_counter()
         frame = preprocess(rgb, depth, self.config)
         pre_ms = (time.perf_counter() - t0) * 1e3
