@@ -9,8 +9,12 @@ sequence, with its trajectory file) and ``evaluate`` (many sequences under many
 configurations, batched), ``load_sequence`` (TUM-style folders), ``summarise`` (a run's
 statistics and ATE / RPE), ``ate`` and ``rpe`` (a trajectory's absolute and relative pose
 errors, as evo computes them), ``Pose`` (the SE(3) pose type of device code) and
-``enable_batch_exact``. Importing the package changes no process-wide setting:
-``enable_batch_exact`` turns on batch-size-exact CPU arithmetic (the ``edgevo`` CLI does).
+``enable_batch_exact``. Importing the package changes no process-wide setting. The first
+tracker (``Odometry``, ``run``, ``evaluate``, ``align``) switches on, as the ``edgevo`` CLI
+does, the on-disk program cache (``EDGEVO_CACHE_DIR``; "" turns it off) and batch-size-exact
+CPU arithmetic (``EDGEVO_EXACT=0`` turns it off): ``programs.enable_cache``, which leaves
+settings the user made alone. ``enable_batch_exact`` does the latter alone, before any JAX
+computation.
 
 Layout: ``image`` (preprocessing, interpolation), ``frontend`` (residual, alignment,
 selection, keyframes), ``backend`` (the window, Schur complement, marginalisation),

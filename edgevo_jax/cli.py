@@ -247,7 +247,7 @@ def _camera(args: argparse.Namespace) -> dict:
 def _run(args: argparse.Namespace) -> int:
     from .config import Config
     from .datasets.source import SourceError, open_source
-    from .pipeline.run import enable_compilation_cache, run_sequence, summarise
+    from .pipeline.run import run_sequence, summarise
 
     config = Config().with_overrides(args.overrides)
     params = _read_params(args.params, config) if args.params is not None else None
@@ -264,7 +264,6 @@ def _run(args: argparse.Namespace) -> int:
         from .viz.recording import RerunRecording
 
         recording = RerunRecording(seq, path=args.rerun, spawn=args.rerun_viewer)
-    enable_compilation_cache()
     out = args.out if args.out is not None else Path(f"{seq.name}.traj.txt")
     try:
         run = run_sequence(seq, config, out=out, progress=not args.no_progress,
@@ -313,10 +312,9 @@ def _batch(args: argparse.Namespace) -> int:
     from .datasets.tum import load_sequence
     from .io import matrices_to_poses7, write_trajectory
     from .pipeline import batch
-    from .pipeline.run import enable_compilation_cache, summarise
+    from .pipeline.run import summarise
 
     configs = batch.load_configs(args.configs)
-    enable_compilation_cache()
     seqs = [load_sequence(p) for p in (args.sequences or [BUNDLED_CLIP])]
     result = batch.evaluate(seqs, configs, chunk=args.chunk, max_frames=args.max_frames,
                             progress=not args.no_progress)

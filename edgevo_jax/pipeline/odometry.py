@@ -29,7 +29,7 @@ from ..geometry import inverse_np, log_np, orthonormalise_np, predict_np
 from ..hostmem import aligned_array, to_host
 from ..image.preprocess import Frame, preprocess
 from ..learn.params import Params, solve_knobs_of
-from ..programs import program, release_compiled
+from ..programs import enable_cache, program, release_compiled
 from . import recovery
 from .mapping import Mapped, Mapper
 from .pair import rigid_transform
@@ -84,7 +84,8 @@ class Odometry:
     core before ``complete`` reads the result back (one frame in flight at a time).
     With ``Config.mapping`` the local window refines each keyframe beside tracking, on a
     worker thread (``pipeline.mapping``; ``Config.mapping_lag`` 0: inline); ``close()`` (or a
-    ``with`` block) stops it.
+    ``with`` block) stops it. Making one switches on the on-disk program cache and the
+    CLI's arithmetic (``programs.enable_cache``; ``EDGEVO_CACHE_DIR=""``: no cache).
 
     A motion prior (an IMU's, wheel odometry's) goes with a frame: ``track(..., prior=T)``,
     ``track_frame`` and ``submit`` take T = T_prev_cur (4, 4, metres): the frame's camera
@@ -102,6 +103,7 @@ class Odometry:
         self, config: Config, intrinsics: Intrinsics, *, initial_pose: np.ndarray | None = None,
         params: Params | None = None, readout_s: float = 0.0,
     ) -> None:
+        enable_cache()  # programs kept on disk, the CLI's arithmetic (``programs``)
         release_compiled()  # a process that tracked under many configurations: room first
         self.config = config
         #: the rolling shutter's readout time the run uses (s): the config's, else the camera's

@@ -28,7 +28,7 @@ from ..frontend.selection import KeyframeEdges, keyframe_edges
 from ..geometry import orthonormalise_np
 from ..hostmem import to_host
 from ..image.preprocess import Frame, preprocess
-from ..programs import program, release_compiled
+from ..programs import enable_cache, program, release_compiled
 from . import recovery
 from .results import LOST, OK, WEAK
 
@@ -185,6 +185,7 @@ def align(
                          "to align; raw sensor units need depth_scale")
     T_init = np.eye(4) if init is None else rigid_transform(init, name="init")
 
+    enable_cache()  # as every tracker: programs kept on disk, the CLI's arithmetic
     release_compiled()  # a process that solved under many configurations: room first
     source = preprocess(images["source_rgb"], src_depth, config)
     target = preprocess(images["target_rgb"], images["target_depth"], config)
