@@ -3,10 +3,11 @@
 Usage::
 
     python scripts/learn_weights.py [SEQ_DIR ...] [--test-sequences SEQ_DIR ...]
-                                    [--train 0:100] [--test 100:200] [--gaps 1,2,3]
+                                    [--frame-step 1] [--train 0:100] [--test 100:200] [--gaps 1,2,3]
                                     [--loss pairs|window] [--window 8] [--num-edges 256]
                                     [--gn-steps 6,6,6] [--steps 200] [--batch 32] [--lr 1e-2]
                                     [--seed 0] [--rot-weight 0.1] [--no-ate] [--control-runs 0]
+                                    [--set KEY=VALUE ...]
                                     [--out-json docs/learning/learn_weights.json]
                                     [--out-png docs/learning/loss.png]
                                     [--out-weights-png docs/learning/weights.png]
@@ -15,6 +16,10 @@ SEQ_DIR defaults to ``SHARED_TUM / rgbd_dataset_freiburg3_teddy_first200`` (the 
 development clip, not shipped). Each SEQ_DIR gives training items from its ``--train`` frames
 and held-out items from its ``--test`` frames; each ``--test-sequences`` folder is held out
 whole (every frame). All sequences need one image size (the frames are stacked).
+``--frame-step`` k keeps every k-th frame of each sequence (``load_sequence``'s: 15 Hz from
+30 Hz at k = 2); the frame ranges count the kept frames. The config is ``Config(num_edges=
+--num-edges)`` with ``--set KEY=VALUE`` overrides (as ``edgevo run --set``), for the fit and
+the held-out runs alike.
 
 Data. Each frame i of a range is a keyframe: its ``num_edges`` edges chosen by
 ``selection.keyframe_edges`` (fixed slots, the config's selection, seed = ``--seed`` + i)
@@ -108,6 +113,13 @@ def _range(text: str) -> tuple[int, int]:
     return int(a), int(b)
 
 
+def _positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
+    return value
+
+
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("sequences", nargs="*", type=Path, default=[DEFAULT_SEQ],
@@ -115,6 +127,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         "(default: the shared fr3_teddy_first200 clip)")
     p.add_argument("--test-sequences", nargs="*", type=Path, default=[],
                    help="TUM sequence folders held out whole")
+    p.add_argument("--frame-step", type=_positive, default=1,
+                   help="keep every k-th frame of each sequence (k = 2: 15 Hz from 30 Hz); "
+                        "--train / --test count the kept frames")
     p.add_argument("--train", type=_range, default=(0, 100), help="training frames a:b")
     p.add_argument("--test", type=_range, default=(100, 200), help="held-out frames a:b")
     p.add_argument("--gaps", default="1,2,3", help="frame gaps k of the pairs (i, i + k)")
@@ -122,6 +137,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="fit on frame pairs or on windows tracked against a keyframe")
     p.add_argument("--window", type=int, default=8, help="frames per window (--loss window)")
     p.add_argument("--num-edges", type=int, default=256, help="keyframe edge slots")
+    p.add_argument("--set", dest="overrides", action="append", default=[],
+                   metavar="KEY=VALUE",
+                   help="Config override, as edgevo run's --set (repeatable): the config of "
+                        "the fit and of the held-out runs (e.g. mapping=false)")
     p.add_argument("--gn-steps", default=",".join(map(str, Smoothing().steps)),
                    help="Gauss-Newton steps per level of the smooth mode, level 0 first")
     # the training loss still falls at 60 steps (docs/learning: -4.7 % at 60, -8.5 % at 200)
@@ -175,14 +194,17 @@ def make_part(seq, index: int, frames: tuple[int, int]) -> Part:
 
 
 def build_data(seqs: list, frames: list[tuple[int, int]], keyframes: list[tuple[int, int]],
-               config: Config, seed: int) -> dict[str, Any]:
+               config: Config, seed: int, keep: dict | None = None) -> dict[str, Any]:
     """Preprocess ``frames`` ((sequence, frame) keys) once; keyframe edges (magnitudes and
-    depth discontinuities included) and the camera of every keyframe; stacked arrays."""
+    depth discontinuities included) and the camera of every keyframe; stacked arrays.
+    ``keep``: a dict that receives each preprocessed ``Frame`` under its key."""
     dist_levels: list[list[np.ndarray]] = [[] for _ in range(config.num_levels)]
     maps, kfs, shapes = [], {}, set()
     for key in frames:
         seq = seqs[key[0]]
         frame = preprocess(*seq.load_frame(key[1]), config)
+        if keep is not None:
+            keep[key] = frame
         shapes.add(frame.shape)
         for lvl, d in enumerate(frame.dist):
             dist_levels[lvl].append(d)
@@ -266,7 +288,13 @@ def make_functions(data: dict, config: Config, smoothing: Smoothing, rot_weight:
     def errors(params, arrays, ki, fi, T_gt):
         return jax.vmap(relative_pose_error)(pairs(params, arrays, ki, fi), T_gt)
 
-    vg, each, err = jax.jit(jax.value_and_grad(loss)), jax.jit(item_losses), jax.jit(errors)
+    vg, err = jax.jit(jax.value_and_grad(loss)), jax.jit(errors)
+    if loss_kind == "window":
+        each = jax.jit(item_losses)
+    else:  # a pair's loss from its errors: one program fewer to compile
+        def each(params, arrays, ki, fi, T_gt):
+            t, r = err(params, arrays, ki, fi, T_gt)
+            return t + rot_weight * r
     return (lambda p, ki, fi, T: vg(p, arrays, ki, fi, T),
             lambda p, ki, fi, T: each(p, arrays, ki, fi, T),
             lambda p, ki, fi, T: err(p, arrays, ki, fi, T))
@@ -427,14 +455,15 @@ def save_weights_plot(curves: dict, path: Path, title: str) -> None:
     fig.savefig(path)
 
 
-def load_all(paths: list[Path]) -> list | str:
-    """The sequences, or the message naming the one that cannot be used."""
+def load_all(paths: list[Path], frame_step: int = 1) -> list | str:
+    """The sequences (every ``frame_step``-th frame: ``load_sequence``'s), or the message
+    naming the one that cannot be used."""
     seqs = []
     for path in paths:
         if not path.is_dir():
             return (f"sequence folder not found: {path} (the fr3_teddy_first200 clip lives in "
                     f"{SHARED_TUM}; pass another TUM folder as the first argument)")
-        seq = load_sequence(path)
+        seq = load_sequence(path, frame_step=frame_step)
         if seq.groundtruth is None:
             return f"{seq.name} has no groundtruth.txt: nothing to fit against"
         seqs.append(seq)
@@ -450,12 +479,16 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     args = parse_args(argv)
     t_start = time.perf_counter()
-    seqs = load_all(list(args.sequences) + list(args.test_sequences))
+    seqs = load_all(list(args.sequences) + list(args.test_sequences), args.frame_step)
     if isinstance(seqs, str):
         say(seqs)
         return 2
     n_split = len(args.sequences)
-    config = Config(num_edges=args.num_edges)
+    try:
+        config = Config(num_edges=args.num_edges).with_overrides(args.overrides)
+    except ValueError as e:
+        say(str(e))
+        return 2
     smoothing = Smoothing(steps=tuple(int(x) for x in args.gn_steps.split(",")))
     if len(smoothing.steps) != config.num_levels:
         say(f"--gn-steps needs {config.num_levels} numbers (one per level), got "
@@ -596,9 +629,10 @@ def main(argv: list[str] | None = None) -> int:
         "settings": {
             "train_frames": list(train_parts[0].frames if train_parts else args.train),
             "test_frames": list(test_parts[0].frames if test_parts else args.test),
-            "gaps": gaps, "loss_kind": args.loss,
+            "frame_step": args.frame_step, "gaps": gaps, "loss_kind": args.loss,
             "window": args.window if args.loss == "window" else None,
-            "num_edges": args.num_edges, "steps": args.steps, "batch": batch,
+            "num_edges": args.num_edges, "overrides": list(args.overrides),
+            "steps": args.steps, "batch": batch,
             "lr": args.lr, "rot_weight": args.rot_weight, "seed": args.seed,
             "mode": "smooth (learn.track_smooth)", "smoothing": smoothing._asdict(),
             "T_init": "identity (pairs); constant velocity from the identity (windows)",

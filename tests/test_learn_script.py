@@ -1,6 +1,7 @@
 """scripts/learn_weights.py end to end on the bundled fr1/xyz clip: a few pairs (or windows),
 one or two adam steps; the JSON holds finite numbers (held-out ATE of full runs included) and
-the loss-curve PNG is written."""
+the loss-curve PNG is written. Their cost is compilation (the smooth mode's gradient, the
+tracker's programs), not the frames."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import json
 import math
 
 import pytest
-from conftest import load_script
+from conftest import SCRIPTS, load_script
 
 from edgevo_jax.cli import BUNDLED_CLIP
 
@@ -36,6 +37,8 @@ def test_learn_weights_runs_on_the_bundled_clip(tmp_path, capsys):
         str(BUNDLED_CLIP), "--train", "0:5", "--test", "5:10", "--gaps", "1,2",
         "--num-edges", "64", "--steps", "2", "--batch", "4", "--timing-reps", "1",
         "--control-runs", "1", "--gn-steps", "3,2,2",
+        # the held-out runs without the window: the tracker's programs alone to compile
+        "--set", "mapping=false",
         "--out-json", str(out_json), "--out-png", str(out_png),
         "--out-weights-png", str(weights_png),
     ])
@@ -51,6 +54,7 @@ def test_learn_weights_runs_on_the_bundled_clip(tmp_path, capsys):
     (control,) = report["ate"]["control"]["runs"]
     assert control["frames"] == 4 and control["ate_rmse_m"] > 0
     assert report["settings"]["loss_kind"] == "pairs"
+    assert report["settings"]["overrides"] == ["mapping=false"]
     assert report["pairs"]["train"] > 0 and report["pairs"]["test"] > 0
     assert len(report["loss_curve"]["minibatch"]) == 2
     assert len(report["loss_curve"]["all_training_pairs"]) == 3
@@ -78,7 +82,9 @@ def test_learn_weights_window_loss(tmp_path, capsys):
         str(BUNDLED_CLIP), "--train", "0:5", "--test", "5:10", "--gaps", "1",
         "--loss", "window", "--window", "3", "--num-edges", "64", "--steps", "1",
         "--batch", "2", "--timing-reps", "1", "--no-ate",
-        "--gn-steps", "3,2,2", "--out-json", str(out_json),
+        # two pyramid levels: the scripts' path is the same, a third less to compile
+        "--set", "iterations=10,10", "--set", "huber_delta=1,1", "--set", "max_residual=5,5",
+        "--gn-steps", "3,2", "--out-json", str(out_json),
         "--out-png", str(tmp_path / "loss.png"), "--out-weights-png", str(tmp_path / "w.png"),
     ])
     assert rc == 0
@@ -90,8 +96,29 @@ def test_learn_weights_window_loss(tmp_path, capsys):
     assert "value_and_grad over 2 windows" in capsys.readouterr().out
 
 
+def test_learn_weights_bad_override(tmp_path, capsys):
+    rc = load_script("learn_weights").main([str(BUNDLED_CLIP), "--set", "no_such_key=1",
+                                            "--out-json", str(tmp_path / "x.json")])
+    assert rc == 2 and "unknown config key 'no_such_key'" in capsys.readouterr().err
+    assert not (tmp_path / "x.json").exists()
+
+
 def test_learn_weights_missing_sequence(tmp_path, capsys):
     rc = load_script("learn_weights").main([str(tmp_path / "nowhere"), "--out-json",
                               str(tmp_path / "x.json"), "--out-png", str(tmp_path / "x.png")])
     assert rc == 2 and "sequence folder not found" in capsys.readouterr().err
+    assert not (tmp_path / "x.json").exists()
+
+
+def test_weighting_bound_refuses_bad_runs(tmp_path, capsys, monkeypatch):
+    """scripts/weighting_bound.py names the bad --runs entry (the refine start is the
+    tracker's alone) before loading anything."""
+    monkeypatch.syspath_prepend(str(SCRIPTS))  # it imports learn_weights, its neighbour
+    script = load_script("weighting_bound")
+    for runs in ("smooth:refine", "smooth", "other:velocity"):
+        rc = script.main([str(BUNDLED_CLIP), "--runs", runs, "--out-json",
+                          str(tmp_path / "x.json")])
+        assert rc == 2, runs
+    err = capsys.readouterr().err
+    assert "tracker:refine" in err and "--runs takes comma-separated solver:start" in err
     assert not (tmp_path / "x.json").exists()
