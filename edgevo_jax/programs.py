@@ -81,7 +81,7 @@ def _jit_call(exported: jax.export.Exported) -> Callable:
     """The exported program, jitted with every input on the default device: numpy inputs
     and device arrays (committed or not) share one compiled program."""
     return jax.jit(exported.call, in_shardings=jax.sharding.SingleDeviceSharding(
-        jax.devices()[0]))
+        jax.local_devices()[0]))
 
 
 class _Kept:
@@ -110,7 +110,7 @@ class _Kept:
 
     def _load_or_export(self, folder: Path, sig: tuple, leaves: list, tree: Any,
                         static: dict) -> tuple[Callable, Any] | None:
-        device = jax.devices()[0]
+        device = jax.local_devices()[0]
         key = hashlib.sha256(repr((sig, self.name, _source_digest(), jax.__version__,
                                    device.platform, device.device_kind)).encode()).hexdigest()
         path = folder / "exported" / f"{self.name}-{key[:32]}.bin"
