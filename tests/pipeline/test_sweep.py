@@ -53,6 +53,13 @@ def _lines(out: Path) -> list[dict]:
 
 
 @pytest.fixture(scope="module")
+def cache(tmp_path_factory) -> Path:
+    """One compilation cache for the sweeps run in subprocesses (each loads what an earlier
+    one compiled)."""
+    return tmp_path_factory.mktemp("cache")
+
+
+@pytest.fixture(scope="module")
 def single(tmp_path_factory) -> tuple[Path, Path]:
     """The sweep file and the output folder of the sweep run in this process, uninterrupted."""
     root = tmp_path_factory.mktemp("sweep")
@@ -99,10 +106,9 @@ def test_sweep_writes_runs_and_summary(single):
     assert (out / "log" / "process-0.jsonl").read_bytes() == before
 
 
-def test_two_processes_equal_one_process(single, tmp_path):
+def test_two_processes_equal_one_process(single, cache, tmp_path):
     toml, one = single
-    run = _cli(str(toml), "--out", str(tmp_path / "two"), "--processes", "2",
-               cache=tmp_path / "cache")
+    run = _cli(str(toml), "--out", str(tmp_path / "two"), "--processes", "2", cache=cache)
     log, _ = run.communicate(timeout=600)
     assert run.returncode == 0, log
     lines = _lines(tmp_path / "two")
@@ -110,9 +116,9 @@ def test_two_processes_equal_one_process(single, tmp_path):
     _assert_same_sweep(one, tmp_path / "two")
 
 
-def test_killed_sweep_resumes_and_ends_with_the_same_summary(single, tmp_path):
+def test_killed_sweep_resumes_and_ends_with_the_same_summary(single, cache, tmp_path):
     toml, one = single
-    out, cache = tmp_path / "killed", tmp_path / "cache"
+    out = tmp_path / "killed"
     log = out / "log" / "process-0.jsonl"
     run = _cli(str(toml), "--out", str(out), cache=cache, start_new_session=True)
     deadline = time.monotonic() + 600
