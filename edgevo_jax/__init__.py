@@ -2,14 +2,19 @@
 
 The public API: ``Config`` and ``Intrinsics`` (what a run needs; ``Camera``: intrinsics
 with lens distortion and rolling-shutter readout, for ``load_sequence(camera=...)``, which
-also takes a preset name of ``camera.CAMERAS``), ``Odometry`` (the
-streaming tracker; ``FrameResult`` per frame), ``run`` (a whole sequence, with its
-trajectory file) and ``evaluate`` (many sequences under many configurations, batched),
-``load_sequence`` (TUM-style folders), ``summarise`` (a run's statistics and ATE / RPE),
-``ate`` and ``rpe`` (a trajectory's absolute and relative pose errors, as evo computes them),
-``Pose`` (the SE(3) pose type of device code) and ``enable_batch_exact``. Importing the
-package changes no process-wide setting: ``enable_batch_exact`` turns on batch-size-exact
-CPU arithmetic (the ``edgevo`` CLI does).
+also takes a preset name of ``camera.CAMERAS``), ``Odometry`` (the streaming tracker, with
+per-frame motion priors and ``reset``; ``FrameResult`` per frame), ``align`` (one frame pair
+from an initial guess: success, transform, information; ``AlignResult``), ``run`` (a whole
+sequence, with its trajectory file) and ``evaluate`` (many sequences under many
+configurations, batched), ``load_sequence`` (TUM-style folders), ``summarise`` (a run's
+statistics and ATE / RPE), ``ate`` and ``rpe`` (a trajectory's absolute and relative pose
+errors, as evo computes them), ``Pose`` (the SE(3) pose type of device code) and
+``enable_batch_exact``. Importing the package changes no process-wide setting. The first
+tracker (``Odometry``, ``run``, ``evaluate``, ``align``) switches on, as the ``edgevo`` CLI
+does, the on-disk program cache (``EDGEVO_CACHE_DIR``; "" turns it off) and batch-size-exact
+CPU arithmetic (``EDGEVO_EXACT=0`` turns it off): ``programs.enable_cache``, which leaves
+settings the user made alone. ``enable_batch_exact`` does the latter alone, before any JAX
+computation.
 
 Layout: ``image`` (preprocessing, interpolation), ``frontend`` (residual, alignment,
 selection, keyframes), ``backend`` (the window, Schur complement, marginalisation),
@@ -26,9 +31,11 @@ from .geometry import Pose
 from .metrics import ate, rpe
 from .pipeline.batch import evaluate
 from .pipeline.odometry import FrameResult, Odometry
+from .pipeline.pair import AlignResult, align
 from .pipeline.run import run_sequence as run
 from .pipeline.run import summarise
 
-__all__ = ["Camera", "Config", "FrameResult", "Intrinsics", "Odometry", "Pose", "ate",
-           "enable_batch_exact", "evaluate", "load_sequence", "rpe", "run", "summarise"]
+__all__ = ["AlignResult", "Camera", "Config", "FrameResult", "Intrinsics", "Odometry", "Pose",
+           "align", "ate", "enable_batch_exact", "evaluate", "load_sequence", "rpe", "run",
+           "summarise"]
 __version__ = "0.1.0"

@@ -275,7 +275,7 @@ def _camera(args: argparse.Namespace) -> dict:
 def _run(args: argparse.Namespace) -> int:
     from .config import Config
     from .datasets.source import SourceError, open_source
-    from .pipeline.run import enable_compilation_cache, run_sequence, summarise
+    from .pipeline.run import run_sequence, summarise
 
     config = Config().with_overrides(args.overrides)
     params = _read_params(args.params, config) if args.params is not None else None
@@ -292,7 +292,6 @@ def _run(args: argparse.Namespace) -> int:
         from .viz.recording import RerunRecording
 
         recording = RerunRecording(seq, path=args.rerun, spawn=args.rerun_viewer)
-    enable_compilation_cache()
     out = args.out if args.out is not None else Path(f"{seq.name}.traj.txt")
     try:
         run = run_sequence(seq, config, out=out, progress=not args.no_progress,
@@ -353,10 +352,9 @@ def _batch(args: argparse.Namespace) -> int:
     from .datasets.tum import load_sequence
     from .io import matrices_to_poses7, write_trajectory
     from .pipeline import batch
-    from .pipeline.run import enable_compilation_cache, summarise
+    from .pipeline.run import summarise
 
     configs = batch.load_configs(args.configs)
-    enable_compilation_cache()
     seqs = [load_sequence(p) for p in (args.sequences or [BUNDLED_CLIP])]
     result = batch.evaluate(seqs, configs, chunk=args.chunk, max_frames=args.max_frames,
                             progress=not args.no_progress)
@@ -416,7 +414,7 @@ def _sweep(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     import jax
 
-    from .pipeline.run import enable_compilation_cache
+    from .programs import enable_cache
 
     children: list = []
     if args.processes > 1:
@@ -429,7 +427,7 @@ def _sweep(args: argparse.Namespace) -> int:
         jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
     elif args.cluster:
         jax.distributed.initialize()
-    enable_compilation_cache()
+    enable_cache()
     index, count = jax.process_index(), jax.process_count()
     tag = f"[process {index}/{count}] " if count > 1 else ""
     t0 = time.perf_counter()

@@ -7,7 +7,8 @@ Importing edgevo_jax changes no process-wide setting. Instead:
   default there is TF32, 10-bit mantissas), for edgevo's computations only. A precision the
   user chose (``jax.config`` or a ``jax.default_matmul_precision`` context around the call)
   stands. On CPUs it changes nothing.
-- ``enable_batch_exact()`` (opt-in; the ``edgevo`` CLI calls it) caps XLA's CPU instruction
+- ``enable_batch_exact()`` (the ``edgevo`` CLI and every tracker, through
+  ``programs.enable_cache``, call it: one arithmetic, one cache key) caps XLA's CPU instruction
   set at AVX, without fused multiply-adds, through ``XLA_FLAGS``. With FMA, how a multiply
   and an add round depends on which compiled kernel they land in, and that depends on the
   program's shapes: a run alone and the same run in a batch round differently (~1e-7 per

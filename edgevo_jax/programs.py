@@ -1,14 +1,20 @@
-"""Jitted programs kept across processes.
+"""Jitted programs kept across processes, and the on-disk cache they are kept in.
 
 ``program(fn, static_argnames=...)`` is ``jax.jit(fn)`` called at full matmul precision
-(``determinism.full_precision``). Once ``keep_programs(folder)`` has been called (the run
-pipeline does it with the compilation cache, ``pipeline.run.enable_compilation_cache``), each
-program is exported with ``jax.export`` the first time it meets a new input signature (the
-pytree structure, shapes, dtypes and static options of its inputs) and stored in ``folder``;
-a later process loads the stored program instead of tracing and lowering ``fn`` again in
-Python, which is most of a warm start. XLA's own compilation cache then supplies the compiled
-executable. A stored program is found by a digest of the signature, the package's source, the
-JAX version, the backend and the matmul precision: any change to one of them exports again.
+(``determinism.full_precision``). Once ``keep_programs(folder)`` has been called
+(``enable_cache`` does it), each program is exported with ``jax.export`` the first time it
+meets a new input signature (the pytree structure, shapes, dtypes and static options of its
+inputs) and stored in ``folder``; a later process loads the stored program instead of
+tracing and lowering ``fn`` again in Python, which is most of a warm start. XLA's own
+compilation cache then supplies the compiled executable. A stored program is found by a
+digest of the signature, the package's source, the JAX version, the backend and the matmul
+precision: any change to one of them exports again.
+
+``enable_cache()`` switches both on, in one folder, for the CLI and the API alike (the
+tracker, ``run`` and ``evaluate`` call it): ``EDGEVO_CACHE_DIR``, by default
+``$XDG_CACHE_HOME/edgevo_jax`` or ``~/.cache/edgevo_jax``; ``EDGEVO_CACHE_DIR=""`` turns it
+off. It also calls ``determinism.enable_batch_exact``, so that every caller compiles the same
+arithmetic under the same cache keys (XLA_FLAGS is part of XLA's key).
 
 Contract: the outputs equal those of ``jax.jit(fn)`` bit for bit (the exported module is the
 one jit lowers). Calls under a JAX transformation (tracers among the inputs) and programs
@@ -34,16 +40,61 @@ from typing import Any
 import jax
 import numpy as np
 
-from .determinism import full_precision
+from .determinism import enable_batch_exact, full_precision
 
 _log = logging.getLogger(__name__)
-_state: dict[str, Any] = {"folder": None, "source": None}
+# folder: where programs are kept (None: not kept); jax_dir: the compilation cache folder
+# enable_cache set (None: it set none, so a folder set in jax.config is the user's)
+_state: dict[str, Any] = {"folder": None, "source": None, "jax_dir": None}
 _lock = threading.Lock()
 
 
 def keep_programs(folder: str | Path | None) -> None:
     """Store exported programs in ``folder`` and load them from there (None: stop)."""
     _state["folder"] = None if folder is None else Path(folder)
+
+
+#: the environment variable naming the cache folder ("" turns the cache off)
+CACHE_ENV = "EDGEVO_CACHE_DIR"
+MIN_TIME_ENV = "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"
+
+
+def cache_folder() -> Path | None:
+    """The program cache's folder: ``EDGEVO_CACHE_DIR`` when set (None when it is empty:
+    no cache), else ``$XDG_CACHE_HOME/edgevo_jax``, else ``~/.cache/edgevo_jax``."""
+    path = os.environ.get(CACHE_ENV)
+    if path is not None:
+        return Path(path).expanduser() if path else None
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "edgevo_jax"
+
+
+def enable_cache() -> Path | None:
+    """Keep edgevo's programs on disk between processes (module doc): exported programs in
+    ``cache_folder()``/exported, and XLA's compiled executables in ``cache_folder()`` through
+    JAX's persistent compilation cache, every program kept, the small ones too (loading
+    beats compiling them again). Settings the user made stand: a
+    ``jax_compilation_cache_dir`` already set is used as it is (with its own thresholds), and
+    ``enable_batch_exact`` leaves an ISA named in XLA_FLAGS, or ``EDGEVO_EXACT=0``, alone.
+    Idempotent; cheap after the first call. Returns the folder, or None when the cache is
+    off (``EDGEVO_CACHE_DIR=""``: nothing is changed then but the batch-exact arithmetic)."""
+    enable_batch_exact()
+    folder = cache_folder()
+    keep_programs(folder)
+    current, ours = jax.config.jax_compilation_cache_dir, _state["jax_dir"]
+    if current is None or current == ours:  # not the user's: follow EDGEVO_CACHE_DIR
+        wanted = None if folder is None else str(folder)
+        if wanted != current:
+            from jax.experimental.compilation_cache import compilation_cache
+
+            jax.config.update("jax_compilation_cache_dir", wanted)
+            if wanted is not None and MIN_TIME_ENV not in os.environ:
+                jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+            # JAX decides at its first compilation whether it caches; a process that
+            # compiled before (without a folder) decides again at its next one
+            compilation_cache.reset_cache()
+        _state["jax_dir"] = wanted
+    return folder
 
 
 def program(fn: Callable, *, static_argnames: str | Sequence[str] = ()) -> Callable:
@@ -77,10 +128,15 @@ def _spec(x: Any) -> tuple:
     return a.shape, str(a.dtype), a.weak_type
 
 
-def _jit_call(exported: jax.export.Exported) -> Callable:
+def _jit_call(exported: jax.export.Exported, name: str) -> Callable:
     """The exported program, jitted with every input on the default device: numpy inputs
-    and device arrays (committed or not) share one compiled program."""
-    return jax.jit(exported.call, in_shardings=jax.sharding.SingleDeviceSharding(
+    and device arrays (committed or not) share one compiled program. Its XLA module is
+    named after the program (``jit_<name>``: logs and the compilation cache tell them apart)."""
+    def call(*args):
+        return exported.call(*args)
+
+    call.__name__ = call.__qualname__ = name
+    return jax.jit(call, in_shardings=jax.sharding.SingleDeviceSharding(
         jax.local_devices()[0]))
 
 
@@ -116,7 +172,7 @@ class _Kept:
         path = folder / "exported" / f"{self.name}-{key[:32]}.bin"
         try:
             serialized, out_tree = pickle.loads(path.read_bytes())
-            return _jit_call(jax.export.deserialize(bytearray(serialized))), out_tree
+            return _jit_call(jax.export.deserialize(bytearray(serialized)), self.name), out_tree
         except FileNotFoundError:
             pass
         except Exception as err:  # a corrupt or stale file: export again
@@ -137,6 +193,7 @@ class _Kept:
             out_trees.append(out_tree)
             return out
 
+        flat.__name__ = flat.__qualname__ = self.name
         specs = [jax.ShapeDtypeStruct(s, d, weak_type=w) for s, d, w in map(_spec, leaves)]
         exported = jax.export.export(jax.jit(flat))(*specs)
         data = pickle.dumps((bytes(exported.serialize()), out_trees[0]))
@@ -145,7 +202,7 @@ class _Kept:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
         os.replace(tmp, path)  # whole files only, whatever runs beside
-        return _jit_call(exported), out_trees[0]
+        return _jit_call(exported, self.name), out_trees[0]
 
 
 #: share of this process's memory-map limit past which ``release_compiled`` drops programs

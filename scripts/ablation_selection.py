@@ -68,7 +68,8 @@ from edgevo_jax.datasets.tum import SHARED_TUM, TumSequence, load_sequence
 from edgevo_jax.frontend.selection import candidates, select
 from edgevo_jax.image.preprocess import preprocess, to_gray
 from edgevo_jax.io import json_safe
-from edgevo_jax.pipeline.run import enable_compilation_cache, run_sequence, summarise
+from edgevo_jax.pipeline.run import run_sequence, summarise
+from edgevo_jax.programs import enable_cache
 from edgevo_jax.provenance import load_average, machine_info
 from edgevo_jax.viz import plot_ablation, plot_selection_overlay
 
@@ -364,7 +365,7 @@ def main(argv: list[str] | None = None) -> int:
     out_dir: Path = args.out_dir
     out_dir.mkdir(parents=True, exist_ok=True)
 
-    cache_dir = enable_compilation_cache()
+    cache_dir = enable_cache()
     started = datetime.datetime.now(datetime.UTC)
     load_before = load_average()
     runs = plan(args.modes, args.num_edges, args.seeds)
@@ -402,7 +403,7 @@ def main(argv: list[str] | None = None) -> int:
         "machine": machine_info(("matplotlib",)),
         "load_average_before": load_before,
         "load_average_after": load_average(),
-        "compilation_cache_dir": cache_dir,
+        "compilation_cache_dir": None if cache_dir is None else str(cache_dir),
         "settings": {"sequences": [str(d) for d in seq_dirs], "modes": args.modes,
                      "num_edges": args.num_edges, "seeds": args.seeds,
                      "max_frames": args.max_frames,

@@ -34,7 +34,7 @@ from edgevo_jax.datasets.pingpong import pingpong
 from edgevo_jax.datasets.tum import SHARED_TUM, TumSequence, load_sequence
 from edgevo_jax.io import json_safe, matrices_to_poses7
 from edgevo_jax.metrics import ate
-from edgevo_jax.pipeline.run import enable_compilation_cache, run_sequence, summarise
+from edgevo_jax.pipeline.run import run_sequence, summarise
 from edgevo_jax.provenance import machine_info
 
 DEFAULT_VARIANTS = ("nomap=mapping=false", "map=")
@@ -76,7 +76,6 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--variant", action="append", default=[])
     p.add_argument("--out-json", type=Path, default=Path("mapping_eval.json"))
     args = p.parse_args(argv)
-    enable_compilation_cache()
     seeds = [int(s) for s in args.seeds.split(",")]
     variants = dict(parse_variant(s) for s in (args.variant or DEFAULT_VARIANTS))
     runs = []

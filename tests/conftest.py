@@ -31,10 +31,11 @@ def _room_for_programs():
 
 @pytest.fixture(autouse=True, scope="session")
 def _no_persistent_cache():
-    """The CLI's on-disk caches (compiled and exported programs, ``EDGEVO_CACHE_DIR``) off:
-    tests that call the CLI in-process would otherwise switch XLA's persistent cache on for
-    the rest of the session and write the user's ~/.cache/edgevo_jax (the kept programs are
-    tested with folders of their own: ``kept_programs``)."""
+    """The on-disk caches (compiled and exported programs, ``EDGEVO_CACHE_DIR``) off: every
+    tracker and the CLI switch them on (``programs.enable_cache``), which would turn XLA's
+    persistent cache on for the rest of the session and write the user's
+    ~/.cache/edgevo_jax (the kept programs are tested with folders of their own:
+    ``kept_programs``; the cache's defaults in new processes, tests/test_programs.py)."""
     before = os.environ.get("EDGEVO_CACHE_DIR")
     os.environ["EDGEVO_CACHE_DIR"] = ""
     yield

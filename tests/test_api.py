@@ -9,14 +9,16 @@ import sys
 
 import edgevo_jax
 
-API = ["Camera", "Config", "FrameResult", "Intrinsics", "Odometry", "Pose", "ate",
-       "enable_batch_exact", "evaluate", "load_sequence", "rpe", "run", "summarise"]
+API = ["AlignResult", "Camera", "Config", "FrameResult", "Intrinsics", "Odometry", "Pose",
+       "align", "ate", "enable_batch_exact", "evaluate", "load_sequence", "rpe", "run",
+       "summarise"]
 #: the leading data arguments each API function takes positionally; everything after is an
 #: option, keyword-only
 POSITIONAL = {"Odometry": ("config", "intrinsics"), "evaluate": ("sequences", "configs"),
               "load_sequence": ("path",), "run": ("seq", "config"), "summarise": ("run", "seq"),
               "enable_batch_exact": (), "ate": ("groundtruth", "estimate"),
-              "rpe": ("groundtruth", "estimate")}
+              "rpe": ("groundtruth", "estimate"),
+              "align": ("source_rgb", "source_depth", "target_rgb", "target_depth")}
 
 
 def test_the_namespace_is_curated():

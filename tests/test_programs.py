@@ -3,6 +3,9 @@ loaded without tracing, one program per signature, and plain jit where nothing c
 
 from __future__ import annotations
 
+import platform
+import subprocess
+import sys
 from pathlib import Path
 from typing import NamedTuple
 
@@ -12,6 +15,8 @@ import numpy as np
 import pytest
 
 from edgevo_jax import programs
+
+X86 = platform.machine().lower() in ("x86_64", "amd64")
 
 
 class Pair(NamedTuple):
@@ -122,3 +127,98 @@ def test_release_compiled_drops_programs_past_the_share_of_memory_maps():
     assert programs.release_compiled(share=0.0)  # every process holds some maps
     f(np.float32(3))
     assert len(traces) == 2
+
+
+_SETTINGS = (
+    "import os, sys, jax\n"
+    "from edgevo_jax import Config, Intrinsics, Odometry\n"
+    "Odometry(Config(), Intrinsics(525.0, 525.0, 319.5, 239.5))\n"
+    "print(jax.config.jax_compilation_cache_dir, "
+    "jax.config.jax_persistent_cache_min_compile_time_secs, "
+    "'--xla_cpu_max_isa=AVX' in os.environ.get('XLA_FLAGS', '').split())\n"
+)
+
+
+def _settings_in_a_new_process(code: str, **env: str) -> list[str]:
+    # this checkout's package, whatever the current folder
+    base = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(Path(programs.__file__).parents[1]),
+            **env}
+    return subprocess.run([sys.executable, "-c", code], env=base, capture_output=True,
+                          text=True, check=True).stdout.split()
+
+
+def test_a_tracker_switches_the_cache_on_with_the_clis_settings(tmp_path):
+    """The API's first tracker keeps programs where the CLI does (the default folder under
+    HOME), every one of them, with the CLI's batch-exact arithmetic (one cache key for
+    both); EDGEVO_CACHE_DIR="" turns the cache off."""
+    folder, cap = tmp_path / ".cache" / "edgevo_jax", str(X86)
+    out = _settings_in_a_new_process(_SETTINGS, HOME=str(tmp_path))
+    assert out == [str(folder), "0.0", cap]
+    out = _settings_in_a_new_process(_SETTINGS, HOME=str(tmp_path), EDGEVO_CACHE_DIR="")
+    assert out == ["None", "1.0", cap]
+
+
+def test_a_compilation_cache_the_user_set_stands(tmp_path):
+    """A jax_compilation_cache_dir set by the user (here through JAX's environment
+    variable) is kept, with its threshold; edgevo's exported programs go to its own folder."""
+    code = _SETTINGS + "from edgevo_jax import programs\nprint(programs._state['folder'])\n"
+    out = _settings_in_a_new_process(code, HOME=str(tmp_path),
+                                     EDGEVO_CACHE_DIR=str(tmp_path / "mine"),
+                                     JAX_COMPILATION_CACHE_DIR=str(tmp_path / "user"))
+    assert out == [str(tmp_path / "user"), "1.0", str(X86), str(tmp_path / "mine")]
+
+
+def test_enable_cache_follows_edgevo_cache_dir_in_a_process(tmp_path, monkeypatch):
+    """Called again with another EDGEVO_CACHE_DIR, the cache moves (or goes off) with it;
+    JAX's folder was not the user's, so it follows."""
+    assert jax.config.jax_compilation_cache_dir is None  # tests run without a cache
+    min_time = jax.config.jax_persistent_cache_min_compile_time_secs
+    try:
+        monkeypatch.setenv("EDGEVO_CACHE_DIR", str(tmp_path / "a"))
+        assert programs.enable_cache() == tmp_path / "a"
+        assert jax.config.jax_compilation_cache_dir == str(tmp_path / "a")
+        monkeypatch.setenv("EDGEVO_CACHE_DIR", str(tmp_path / "b"))
+        assert programs.enable_cache() == tmp_path / "b"
+        assert jax.config.jax_compilation_cache_dir == str(tmp_path / "b")
+        monkeypatch.setenv("EDGEVO_CACHE_DIR", "")
+        assert programs.enable_cache() is None
+        assert jax.config.jax_compilation_cache_dir is None
+        assert programs._state["folder"] is None
+    finally:
+        programs.keep_programs(None)
+        programs._state["jax_dir"] = None
+        jax.config.update("jax_compilation_cache_dir", None)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", min_time)
+
+
+def test_cache_folder_default_and_xdg(tmp_path, monkeypatch):
+    monkeypatch.delenv("EDGEVO_CACHE_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    assert programs.cache_folder() == tmp_path / "edgevo_jax"
+    monkeypatch.delenv("XDG_CACHE_HOME")
+    assert programs.cache_folder() == Path.home() / ".cache" / "edgevo_jax"
+    monkeypatch.setenv("EDGEVO_CACHE_DIR", "~/elsewhere")
+    assert programs.cache_folder() == Path.home() / "elsewhere"
+
+
+def test_compile_report_records_each_compiled_program():
+    """scripts/compile_report.py's recorder: one row per XLA compilation, named as the
+    compilation cache names its file, with its tracing, lowering and compile times."""
+    from conftest import load_script
+
+    report = load_script("compile_report")
+    recorder = report.Recorder(None)
+
+    def squares_plus_one(x):
+        return x * x + 1.0
+
+    recorder.start()
+    try:
+        jax.jit(squares_plus_one)(np.arange(3.0, dtype=np.float32))
+    finally:
+        recorder.stop()
+    rows = [r for r in recorder.rows if r["program"] == "jit_squares_plus_one"]
+    assert len(rows) == 1 and not rows[0]["cached"]
+    assert rows[0]["compile_s"] > 0 and rows[0]["trace_s"] > 0 and rows[0]["lower_s"] > 0
+    jax.jit(squares_plus_one)(np.arange(4.0, dtype=np.float32))  # after stop: not recorded
+    assert len([r for r in recorder.rows if r["program"] == "jit_squares_plus_one"]) == 1

@@ -293,20 +293,37 @@ def align_level(
     make plain Gauss-Newton oscillate); lam shrinks 10x after a kept step and grows 10x after
     a rejected one (``solvers.DAMPING``). lax.while_loop: fixed shapes, at most
     ``knobs.iterations[level]`` tries, stopped earlier by ``pose_continues``.
+
+    The normal equations at the start pose are the loop's first pass (``fresh``: no step,
+    ``pose_start``'s state after it), not a copy of them before the loop: the program
+    holds them once per level, and the numbers are those of a separate first evaluation.
     """
 
     def system_at(T):
         return normal_equations(T, pts_k, kf, field, edge_map, intr, level, knobs, shutter)
 
     def cond(carry):
-        i, state = carry
-        return (i < knobs.iterations[level]) & pose_continues(state, knobs)
+        i, state, fresh = carry
+        return fresh | ((i < knobs.iterations[level]) & pose_continues(state, knobs))
 
     def body(carry):
-        i, state = carry
-        return i + 1, pose_try(system_at, state)
+        i, state, fresh = carry
 
-    _, state = jax.lax.while_loop(cond, body, (jnp.asarray(0), pose_start(T, system_at(T))))
+        def start_or_retract(T, xi):
+            return jax.tree.map(lambda a, b: jnp.where(fresh, a, b), T, T.retract(xi))
+
+        tried, _ = DAMPING.step(
+            state, solve=lambda T, system, lam: damped_step(system, lam),
+            apply=start_or_retract, evaluate=lambda T, system: system_at(T),
+            accept=lambda old, new: fresh | lower_cost(old, new))
+        # the first pass only evaluates: the state pose_start makes from its system
+        tried = tried._replace(lam=jnp.where(fresh, state.lam, tried.lam),
+                               step=jnp.where(fresh, state.step, tried.step))
+        return jnp.where(fresh, i, i + 1), tried, jnp.asarray(False)
+
+    unset = LevelSystem(jnp.zeros(NUM_SUMS, pts_k.dtype))  # replaced by the first pass
+    _, state, _ = jax.lax.while_loop(
+        cond, body, (jnp.asarray(0), pose_start(T, unset), jnp.asarray(True)))
     return state.x, state.system
 
 

@@ -164,6 +164,12 @@ def _mix32(x: jnp.ndarray) -> jnp.ndarray:
     return x ^ (x >> 16)
 
 
+def order_half_bits(n: int) -> int:
+    """h of ``random_order``'s domain [0, 4^h) for n items: the smallest h >= 1 with
+    4^h >= n."""
+    return max(1, -(-max(n - 1, 1).bit_length() // 2))
+
+
 def random_order(key: jax.Array, n: int) -> jnp.ndarray:
     """A pseudo-random order of 0..n-1 drawn from ``key``, in O(n) and without a sort (XLA's
     CPU sort or top_k of a few thousand keys costs about as much as the whole greedy): a
@@ -171,7 +177,7 @@ def random_order(key: jax.Array, n: int) -> jnp.ndarray:
     is MurmurHash3's finaliser; a Feistel network is a bijection whatever its round function
     (Luby-Rackoff: four rounds of a good one look like a random permutation). Values >= n
     are left to the caller to skip. Returns (4^h,) int32, a permutation of 0..4^h-1."""
-    half = max(1, -(-max(n - 1, 1).bit_length() // 2))
+    half = order_half_bits(n)
     mask = jnp.uint32((1 << half) - 1)
     round_keys = jax.random.bits(key, (4,), jnp.uint32)
     x = jnp.arange(1 << (2 * half), dtype=jnp.uint32)
@@ -347,7 +353,7 @@ def select(
         return np.arange(n) if k == n else np.sort(rng.choice(n, k, replace=False))
     cell_id, _ = partition_ids(cands.uv, width, height, config.cell_size)
     order, starts, counts = partition_order(cell_id, config.max_per_cell, seed)
-    size = _bucket(n, config.max_edges)  # partitions <= points: one size for both
+    size = candidate_size(n, config)  # partitions <= points: one size for both
     points = np.zeros((6, size), np.float32)  # one buffer, one transfer
     points[2] = 1.0
     points[0:2, :n] = cands.uv[:, order]
@@ -379,13 +385,35 @@ def _run_device(points: np.ndarray, ranges: np.ndarray, T_prior: np.ndarray, int
     )
 
 
-def bucket_sizes(config: Config) -> list[int]:
-    """Every padded size (``_bucket``) a keyframe can meet: the selection's candidate
-    buffers, and with ``selection=all`` the tracked slots."""
+def _buckets(cap: int) -> list[int]:
+    """Every size ``_bucket`` gives under ``cap``, ascending."""
     sizes, n = [], 1
-    while not sizes or sizes[-1] < config.max_edges:
-        sizes.append(_bucket(n, config.max_edges))
+    while not sizes or sizes[-1] < cap:
+        sizes.append(_bucket(n, cap))
         n = sizes[-1] + 1
+    return sizes
+
+
+def candidate_size(n: int, config: Config) -> int:
+    """Padded size of the selection's candidate buffers for n candidates: ``_bucket``; with
+    ``spg``, the largest bucket whose partitions are visited in the same random order
+    (``random_order`` over the same domain, ``order_half_bits``). Padding partitions hold no
+    candidate and are skipped where they fall in that order, so the choice is the one of
+    the smaller bucket, bit for bit, with fewer programs to compile (3 instead of 5 by
+    default). ``greedy`` samples over the whole buffer: its own bucket."""
+    size = _bucket(n, config.max_edges)
+    if config.selection != "spg":
+        return size
+    half = order_half_bits(size)
+    return max(s for s in _buckets(config.max_edges) if order_half_bits(s) == half)
+
+
+def bucket_sizes(config: Config) -> list[int]:
+    """Every padded size a keyframe can meet: the selection's candidate buffers
+    (``candidate_size``), and with ``selection=all`` the tracked slots (``_bucket``)."""
+    sizes = _buckets(config.max_edges)
+    if config.selection == "spg":
+        return sorted({candidate_size(s, config) for s in sizes})
     return sizes
 
 

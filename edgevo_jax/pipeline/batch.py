@@ -58,7 +58,7 @@ from ..frontend.selection import KeyframeEdges
 from ..hostmem import aligned_stack, to_host
 from ..image.interp import stack_edge_maps
 from ..image.preprocess import Frame, preprocess
-from ..programs import program
+from ..programs import enable_cache, program
 from .odometry import Odometry
 from .results import FrameResult, FrameResults
 from .run import conclude_chunk, initial_pose
@@ -243,6 +243,7 @@ def evaluate(
     """
     if not sequences or not configs:
         raise ValueError("evaluate needs at least one sequence and one configuration")
+    enable_cache()  # before any JAX computation: programs kept on disk, batch-exact arithmetic
     if chunk < 1:
         raise ValueError(f"chunk must be positive, got {chunk}")
     max_lag = chunk if max_lag is None else max_lag

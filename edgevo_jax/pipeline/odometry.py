@@ -29,9 +29,10 @@ from ..geometry import inverse_np, log_np, orthonormalise_np, predict_np
 from ..hostmem import aligned_array, to_host
 from ..image.preprocess import Frame, preprocess
 from ..learn.params import Params, solve_knobs_of
-from ..programs import program, release_compiled
+from ..programs import enable_cache, program, release_compiled
 from . import recovery
 from .mapping import Mapped, Mapper
+from .pair import rigid_transform
 from .recovery import inlier_share
 from .results import LOST, OK, WEAK, FrameResult, Refinement
 
@@ -50,6 +51,7 @@ class _Pending:
     output: object  # TrackResult of device arrays, or None for the first frame
     preprocess_ms: float
     t_submit: float
+    prior: np.ndarray | None = None  # T_prev_cur (4, 4) given with the frame
 
 
 @dataclass
@@ -82,13 +84,26 @@ class Odometry:
     core before ``complete`` reads the result back (one frame in flight at a time).
     With ``Config.mapping`` the local window refines each keyframe beside tracking, on a
     worker thread (``pipeline.mapping``; ``Config.mapping_lag`` 0: inline); ``close()`` (or a
-    ``with`` block) stops it.
+    ``with`` block) stops it. Making one switches on the on-disk program cache and the
+    CLI's arithmetic (``programs.enable_cache``; ``EDGEVO_CACHE_DIR=""``: no cache).
+
+    A motion prior (an IMU's, wheel odometry's) goes with a frame: ``track(..., prior=T)``,
+    ``track_frame`` and ``submit`` take T = T_prev_cur (4, 4, metres): the frame's camera
+    pose in the previous frame's camera (p_prev = T p_cur), so that its predicted pose is
+    T_world_prev @ T. It replaces the constant-velocity prediction as the start of the
+    solve, of the recovery search from earlier keyframes and as the pose of a LOST frame;
+    the recovery tries the constant-velocity start as well. The rolling shutter's motion
+    per row is read from the pose being solved (``frontend.shutter``), so the prior reaches
+    it through the start. Priors are taken by this streaming API only: ``run`` /
+    ``run.track_in_chunks`` solve chunks of frames on the device from constant velocity.
+    ``reset()`` forgets the trajectory and starts anew (see there).
     """
 
     def __init__(
         self, config: Config, intrinsics: Intrinsics, *, initial_pose: np.ndarray | None = None,
         params: Params | None = None, readout_s: float = 0.0,
     ) -> None:
+        enable_cache()  # programs kept on disk, the CLI's arithmetic (``programs``)
         release_compiled()  # a process that tracked under many configurations: room first
         self.config = config
         #: the rolling shutter's readout time the run uses (s): the config's, else the camera's
@@ -98,6 +113,8 @@ class Odometry:
         if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
             raise ValueError("initial_pose must be a finite 4x4 matrix")
         self._initial = pose
+        # what reset() starts again from: the constructor's intrinsics, readout and pose
+        self._given = (self.intrinsics, readout_s, pose)
         self._kf: _Keyframe | None = None
         self._poses: list[np.ndarray] = []  # the last two T_world_cam, for constant velocity
         self._times: list[float] = []  # their timestamps
@@ -128,34 +145,72 @@ class Odometry:
         self._rel: tuple[np.ndarray, np.ndarray] | None = None
 
     # -- public -------------------------------------------------------------------------
-    def track(self, rgb: np.ndarray, depth: np.ndarray, timestamp: float) -> FrameResult:
+    def track(self, rgb: np.ndarray, depth: np.ndarray, timestamp: float, *,
+              prior: np.ndarray | None = None) -> FrameResult:
         """Track one frame: rgb (H, W, 3) (or gray (H, W)) uint8, depth (H, W) float in
-        metres (0 or NaN = missing), timestamp in seconds, increasing. ValueError naming the
-        problem for arrays of the wrong kind or size (before any JAX code runs)."""
+        metres (0 or NaN = missing), timestamp in seconds, increasing; ``prior``: the
+        frame's motion T_prev_cur (class doc; None: constant velocity). ValueError naming
+        the problem for arrays of the wrong kind or size and a prior that is no rigid
+        transform (before any JAX code runs)."""
+        if prior is not None:  # refused before the frame is looked at (``submit`` takes it)
+            rigid_transform(prior, name="prior")
         self._check_frame(rgb, depth, timestamp)
         t0 = time.perf_counter()
         frame = preprocess(rgb, depth, self.config)
         pre_ms = (time.perf_counter() - t0) * 1e3
-        return self.complete(self.submit(frame, timestamp, preprocess_ms=pre_ms))
+        return self.complete(self.submit(frame, timestamp, preprocess_ms=pre_ms, prior=prior))
 
-    def track_frame(self, frame: Frame, timestamp: float) -> FrameResult:
-        """Track one pre-processed frame (synchronous)."""
-        return self.complete(self.submit(frame, timestamp))
+    def track_frame(self, frame: Frame, timestamp: float, *,
+                    prior: np.ndarray | None = None) -> FrameResult:
+        """Track one pre-processed frame (synchronous; ``prior`` as in ``track``)."""
+        return self.complete(self.submit(frame, timestamp, prior=prior))
 
-    def submit(self, frame: Frame, timestamp: float, *, preprocess_ms: float = 0.0) -> _Pending:
-        """Dispatch the solve of one pre-processed frame; read it back with ``complete``."""
+    def submit(self, frame: Frame, timestamp: float, *, preprocess_ms: float = 0.0,
+               prior: np.ndarray | None = None) -> _Pending:
+        """Dispatch the solve of one pre-processed frame; read it back with ``complete``.
+        ``prior``: the frame's motion T_prev_cur (class doc; None: constant velocity); the
+        first frame has none to use (it starts at the initial pose)."""
         if self._in_flight:
             raise RuntimeError("complete() the frame in flight before submitting another")
+        prior = None if prior is None else rigid_transform(prior, name="prior")
         timestamp = self._advance_time(timestamp)
         t_submit = time.perf_counter()
         self._in_flight = True
         if self._kf is None:
-            return _Pending(frame, timestamp, self._initial, None, preprocess_ms, t_submit)
+            start = self._initial if prior is None or not self._poses else self._predict(prior)
+            return _Pending(frame, timestamp, start, None, preprocess_ms, t_submit, prior)
+        if prior is not None:  # from the prior: the solve recovery runs, from that start
+            predicted = self._predict(prior)
+            output = self._dispatch_align(self._kf, frame, inverse_np(predicted) @ self._kf.pose,
+                                          self._rate(timestamp, frame))
+            return _Pending(frame, timestamp, predicted, output, preprocess_ms, t_submit, prior)
         A, B = self._rel
         intr, knobs = self._device_constants()
         output = track_next_jit(self._kf.edges, frame.dist, frame.edge_map, A, B,
                                 intr, knobs, self._rate(timestamp, frame), config=self._static)
         return _Pending(frame, timestamp, self._predict(), output, preprocess_ms, t_submit)
+
+    def reset(self, *, pose: np.ndarray | None = None) -> None:
+        """Forget the trajectory: keyframes, poses, the local window (its worker stopped),
+        the inlier-share history, the refinements, timestamps and frame size. The next frame
+        starts anew at ``pose`` (T_world_cam (4, 4); None: the constructor's
+        ``initial_pose``), with the constructor's intrinsics, and the frames after it are
+        tracked as a new ``Odometry`` would track them, bit for bit. Compiled programs stay
+        (none compiles again for frames of a size seen before); ``warm_up_ms`` keeps the
+        first warm-up's time. RuntimeError while a frame is in flight; ValueError naming
+        ``pose`` when it is no rigid transform."""
+        if self._in_flight:
+            raise RuntimeError("complete() the frame in flight before reset()")
+        given, warm_up_ms = self._given, self.warm_up_ms
+        intrinsics, readout_s, initial = given
+        if pose is not None:
+            rigid_transform(pose, name="pose")  # checked; taken as given, as the constructor's
+        self.close()
+        # the constructor's state: nothing tracked before can leak into the new start
+        Odometry.__init__(self, self.config, intrinsics,
+                          initial_pose=initial if pose is None else pose,
+                          params=self.params, readout_s=readout_s)
+        self._given, self.warm_up_ms = given, warm_up_ms
 
     def complete(self, pending: _Pending) -> FrameResult:
         """Wait for a submitted frame, decide its state and keyframe, and return its result."""
@@ -259,7 +314,7 @@ class Odometry:
         """State, recovery, keyframe decision and pose of a solved frame (see ``accept``)."""
         frame, timestamp = pending.frame, pending.timestamp
         if self._start_frame():  # refined keyframe poses taken: the prediction moved with them
-            pending = dataclasses.replace(pending, predicted=self._predict())
+            pending = dataclasses.replace(pending, predicted=self._predict(pending.prior))
         kf = start_kf = self._kf
         solved, confirmed = res, False
         lost = recovery.lost_reason(frame, res, self.config)
@@ -305,7 +360,8 @@ class Odometry:
             since = timestamp - (self._tracked_t if self._tracked_t is not None
                                  else kf.timestamp)
             reason = "lost" if since >= self.config.kf_max_interval_s else None
-            pose = self._predict() if self._take_mapped(None) else pending.predicted
+            pose = self._predict(pending.prior) if self._take_mapped(None) \
+                else pending.predicted
             # lost frames in a row extrapolate again and again: keep R a rotation, stay finite
             pose = orthonormalise_np(pose) if np.all(np.isfinite(pose)) else pose
             if not np.all(np.isfinite(pose)):
@@ -423,10 +479,12 @@ class Odometry:
         ``recovery.Found`` (the first solve kept when nothing beats it; ``first`` None when
         it was lost), or None when nothing usable was found."""
         doubt = self.config.doubt_share_ratio
+        starts = recovery.motion_starts(self._poses, self._times, pending.timestamp)
+        if pending.prior is not None:  # the first solve came from the prior: also try this
+            starts = [*starts, self._predict()]
         return recovery.search(
             frame, [self._kf, *reversed(self._previous)], first=first,
-            predicted=pending.predicted,
-            starts=recovery.motion_starts(self._poses, self._times, pending.timestamp),
+            predicted=pending.predicted, starts=starts,
             align=lambda kf, fr, T: self._align(kf, fr, T, self._rate(pending.timestamp, fr)),
             usable=lambda out: recovery.lost_reason(frame, out, self.config) is None,
             good_enough=None if reference is None
@@ -437,11 +495,15 @@ class Odometry:
         """The edge alignment of ``frame`` to ``kf`` from the start T_cur_kf (host arrays);
         ``rate``: the frame's ``shutter.Shutter.rate`` (None: a global shutter), with the
         last frame's pose as its previous one."""
+        return to_host(self._dispatch_align(kf, frame, T_c_k, rate))
+
+    def _dispatch_align(self, kf: _Keyframe, frame: Frame, T_c_k: np.ndarray, rate=None):
+        """``_align`` dispatched: its result as device arrays, not waited for."""
         shutter = None if rate is None else Shutter(
             aligned_array(inverse_np(self._poses[-1]) @ kf.pose, np.float32), np.float32(rate))
-        return to_host(_track_jit(
+        return _track_jit(
             kf.edges, frame.dist, frame.edge_map, np.asarray(T_c_k, np.float32),
-            self.intrinsics, config=self._static, knobs=self.knobs, shutter=shutter))
+            self.intrinsics, config=self._static, knobs=self.knobs, shutter=shutter)
 
     # -- internals ------------------------------------------------------------------------
     def _check_frame(self, rgb, depth, timestamp) -> None:
@@ -492,8 +554,12 @@ class Odometry:
                          else 0.0 for i, (a, b) in enumerate(zip(prev, t, strict=True))],
                         np.float32)
 
-    def _predict(self) -> np.ndarray:
-        """Constant velocity: T_w_pred = T_w_last (T_w_prev^-1 T_w_last) (``predict_np``)."""
+    def _predict(self, prior: np.ndarray | None = None) -> np.ndarray:
+        """The next frame's predicted T_world_cam: T_w_last @ prior with a motion prior
+        T_prev_cur, else constant velocity: T_w_last (T_w_prev^-1 T_w_last)
+        (``predict_np``)."""
+        if prior is not None:
+            return self._poses[-1] @ prior
         if len(self._poses) < 2:
             return self._poses[-1]
         prev, last = self._poses

@@ -36,7 +36,6 @@ from ..image.preprocess import Frame, start_preprocess
 from ..io import TrajectoryWriter, matrices_to_poses7, poses7_to_matrices
 from ..learn.params import Params
 from ..metrics import ate, rpe_per_second
-from ..programs import keep_programs
 from .odometry import Odometry
 from .results import LOST, OK, WEAK, FrameResult, FrameResults
 
@@ -97,23 +96,6 @@ def per_frame_record(result: FrameResult) -> dict:
     return {"timestamp": result.timestamp, "state": result.state, "reason": result.reason,
             "inliers": result.inliers, "keyframe": result.keyframe,
             "edges_used": result.edges_used}
-
-
-def enable_compilation_cache() -> str | None:
-    """Keep compiled XLA programs on disk between runs (EDGEVO_CACHE_DIR, default
-    ~/.cache/edgevo_jax): the first run compiles for seconds, later runs load instead; every
-    program is kept, the small ones too (loading beats compiling them again).
-    An empty EDGEVO_CACHE_DIR turns it off. Returns the folder, or None."""
-    import os
-
-    import jax
-
-    path = os.environ.get("EDGEVO_CACHE_DIR", str(Path.home() / ".cache" / "edgevo_jax"))
-    if path:
-        jax.config.update("jax_compilation_cache_dir", path)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    keep_programs(path or None)
-    return path or None
 
 
 def initial_pose(seq: Source) -> np.ndarray:

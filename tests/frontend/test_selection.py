@@ -200,3 +200,31 @@ def test_depth_discontinuity_measures_depth_steps_and_skips_missing_depth():
     np.testing.assert_allclose(out, [0.0, 1.0, 0.5, 0.0, 0.0, 0.0, 1000.0], atol=1e-6)
     assert out.dtype == np.float32
     np.testing.assert_array_equal(depth_discontinuity(None, uv, z), np.zeros(7, np.float32))
+
+
+def test_spg_choice_is_the_same_in_the_merged_candidate_buffer(monkeypatch):
+    """spg pads 1025-4096 candidates to one buffer of 4096 (``candidate_size``: one program
+    where there were two): the partitions are visited in the same random order, so the
+    edges chosen are those of the 2048 buffer, bit for bit; greedy keeps its own buckets."""
+    from edgevo_jax import Intrinsics
+    from edgevo_jax.frontend import selection
+
+    rng = np.random.default_rng(7)
+    n = 1500
+    angle = rng.uniform(0, 2 * np.pi, n)
+    cands = selection.Candidates(
+        uv=np.stack([rng.uniform(0, 639, n), rng.uniform(0, 479, n)]).astype(np.float32),
+        rho=rng.uniform(0.2, 1.0, n).astype(np.float32),
+        grad=np.stack([np.cos(angle), np.sin(angle)]).astype(np.float32),
+        mag=rng.uniform(20, 200, n).astype(np.float32))
+    config = Config()
+    kw = {"T_prior": np.eye(4), "intr": Intrinsics(525.0, 525.0, 319.5, 239.5),
+          "width": 640, "height": 480, "seed": 3}
+    assert selection.candidate_size(n, config) == 4096
+    assert selection.candidate_size(n, config.replace(selection="greedy")) == 2048
+    merged = select(cands, config, **kw)
+    monkeypatch.setattr(selection, "candidate_size",
+                        lambda m, c: selection._bucket(m, c.max_edges))  # the 2048 buffer
+    alone = select(cands, config, **kw)
+    assert merged.size == config.num_edges
+    np.testing.assert_array_equal(merged, alone)
