@@ -136,7 +136,8 @@ def _jit_call(exported: jax.export.Exported, name: str) -> Callable:
         return exported.call(*args)
 
     call.__name__ = call.__qualname__ = name
-    return jax.jit(call, in_shardings=jax.sharding.SingleDeviceSharding(jax.devices()[0]))
+    return jax.jit(call, in_shardings=jax.sharding.SingleDeviceSharding(
+        jax.local_devices()[0]))
 
 
 class _Kept:
@@ -165,7 +166,7 @@ class _Kept:
 
     def _load_or_export(self, folder: Path, sig: tuple, leaves: list, tree: Any,
                         static: dict) -> tuple[Callable, Any] | None:
-        device = jax.devices()[0]
+        device = jax.local_devices()[0]
         key = hashlib.sha256(repr((sig, self.name, _source_digest(), jax.__version__,
                                    device.platform, device.device_kind)).encode()).hexdigest()
         path = folder / "exported" / f"{self.name}-{key[:32]}.bin"

@@ -23,7 +23,11 @@ Devices: the runs axis is sharded over ``devices`` (default: all local devices) 
 ``NamedSharding`` over a one-axis mesh ``("runs",)``; the batch is padded with copies of the
 last run to a multiple of the device count. Under ``jax.distributed`` each process takes the
 runs ``process_index::process_count`` on its own local devices (runs are independent, so
-nothing crosses hosts) and returns those.
+nothing crosses hosts) and returns those; ``pipeline.sweep`` starts the processes, splits a
+sweep's runs among them itself and gathers the results.
+
+On one device the step is a kept program (``programs.program``): a later process loads it
+instead of tracing and compiling it again.
 """
 
 from __future__ import annotations
@@ -33,7 +37,7 @@ import itertools
 import json
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from functools import cache, partial
@@ -46,8 +50,7 @@ from tqdm import tqdm
 
 from ..camera import Intrinsics
 from ..config import Config
-from ..datasets.source import camera_readout
-from ..datasets.tum import TumSequence
+from ..datasets.source import Source, camera_readout
 from ..derive import SolveStructure, solve_structure
 from ..determinism import full_precision
 from ..frontend.chunk import track_chunk
@@ -55,7 +58,7 @@ from ..frontend.selection import KeyframeEdges
 from ..hostmem import aligned_stack, to_host
 from ..image.interp import stack_edge_maps
 from ..image.preprocess import Frame, preprocess
-from ..programs import enable_cache
+from ..programs import enable_cache, program
 from .odometry import Odometry
 from .results import FrameResult, FrameResults
 from .run import conclude_chunk, initial_pose
@@ -69,17 +72,22 @@ PREPROCESS_FIELDS = ("blur_ksize", "blur_sigma", "canny_low", "canny_high", "min
 class BatchRun(FrameResults):
     """One run of a batch: the sequence's name, its configuration (and its index in the
     ``configs`` given), and the per-frame results in order (``poses`` (N, 4, 4)
-    T_world_cam, ``timestamps`` (N,) s)."""
+    T_world_cam, ``timestamps`` (N,) s); ``batch_ms_per_frame``: the batch's wall time from
+    its start to this run's last frame, per frame it had tracked by then over all its runs
+    (ms; the batch's time shared over its runs, preprocessing and compilation included)."""
 
     sequence: str
     config_index: int
     config: Config
     results: list[FrameResult] = field(default_factory=list)
     num_keyframes: int = 0
+    batch_ms_per_frame: float = float("nan")
 
     def summary_fields(self) -> dict:
-        """The run's own fields for ``run.summarise``: its configuration's index."""
-        return {"config_index": self.config_index}
+        """The run's own fields for ``run.summarise``: its configuration's index and the
+        batch's time per frame up to its end."""
+        return {"config_index": self.config_index,
+                "batch_ms_per_frame": self.batch_ms_per_frame}
 
 
 @dataclass
@@ -102,14 +110,14 @@ class _Frames:
     device and the host logic) and dropped once every run is past them, so that memory
     stays bounded whatever the sequence's length."""
 
-    def __init__(self, seq: TumSequence, config: Config, n: int) -> None:
+    def __init__(self, seq: Source, config: Config, n: int) -> None:
         self.seq, self.config, self.n = seq, config, n
         self._futures: dict[int, Future] = {}
         self._low = 0  # frames before this one are dropped
         self._lock = threading.Lock()  # runs are concluded on two threads (_concluders)
 
     def _make(self, i: int) -> Frame:
-        return preprocess(*self.seq.load_frame(i), self.config)
+        return preprocess(*self.seq.rectify_frame(*self.seq.decode_frame(i)), self.config)
 
     def prefetch(self, upto: int) -> None:
         """Start making the frames up to index ``upto`` (exclusive) not yet asked for."""
@@ -152,6 +160,7 @@ class _Lane:
     frames: _Frames
     timestamps: np.ndarray
     position: int = 0
+    reported: bool = False
 
     @property
     def done(self) -> bool:
@@ -172,15 +181,29 @@ def _step(kf, window_dist, window_ng, source, offset, A, B, intr, knobs, rates, 
     return track_chunk(kf, dist, ng, A, B, intr, knobs, rates, config=config)
 
 
+_IN_AXES = (0, None, None, 0, 0, 0, 0, 0, 0, 0)
+
+
+def batch_step(kf, window_dist, window_ng, source, offset, A, B, intr, knobs, rates, *,
+               config: SolveStructure, chunk: int):
+    """The batch step: ``_step`` vmapped over runs (the frame windows shared, not mapped);
+    ``config``: the solve's static part."""
+    return jax.vmap(partial(_step, config=config, chunk=chunk), in_axes=_IN_AXES)(
+        kf, window_dist, window_ng, source, offset, A, B, intr, knobs, rates)
+
+
+#: the batch step on one device, kept across processes (``programs.program``)
+batch_step_kept = program(batch_step, static_argnames=("config", "chunk"))
+
+
 @cache
 def _batched(config: SolveStructure, chunk: int, sharding: NamedSharding | None):
-    """The compiled batch step: vmap over runs; the frame windows are shared (not mapped);
-    ``config``: the solve's static part."""
-    fn = jax.vmap(partial(_step, config=config, chunk=chunk),
-                  in_axes=(0, None, None, 0, 0, 0, 0, 0, 0, 0))
+    """The compiled batch step for ``config`` and ``chunk``: the kept program on one device,
+    else jitted with its outputs sharded over the runs axis."""
     if sharding is None:
-        return full_precision(jax.jit(fn))
-    return full_precision(jax.jit(fn, out_shardings=sharding))
+        return partial(batch_step_kept, config=config, chunk=chunk)
+    return full_precision(jax.jit(partial(batch_step, config=config, chunk=chunk),
+                                  out_shardings=sharding))
 
 
 def _structure(configs: Sequence[Config]) -> SolveStructure:
@@ -193,7 +216,7 @@ def _structure(configs: Sequence[Config]) -> SolveStructure:
 
 
 def evaluate(
-    sequences: Sequence[TumSequence],
+    sequences: Sequence[Source],
     configs: Sequence[Config],
     *,
     chunk: int = 2,
@@ -201,6 +224,8 @@ def evaluate(
     max_lag: int | None = None,
     devices: Sequence[jax.Device] | None = None,
     progress: bool = True,
+    runs: Sequence[tuple[int, int]] | None = None,
+    on_run: Callable[[BatchRun], None] | None = None,
 ) -> BatchResult:
     """Track every sequence under every configuration in one compiled program per step.
 
@@ -210,7 +235,11 @@ def evaluate(
     slowest run that shares its pre-processed frames waits (each call carries chunk +
     max_lag frames of every preprocessing group and sequence); ``devices`` to shard
     the runs over (default ``jax.local_devices()``).
-    Returns the runs in sequence-major order with each run's per-frame results.
+    ``runs``: the (sequence index, configuration index) pairs to track, in that order
+    (default: every pair, sequence-major, and under ``jax.distributed`` this process's share
+    ``process_index::process_count`` of them); ``on_run(run)`` is called with each run as
+    soon as it is finished (its results complete, its tracker closed), on the calling thread.
+    Returns the runs tracked, in order, with each run's per-frame results.
     """
     if not sequences or not configs:
         raise ValueError("evaluate needs at least one sequence and one configuration")
@@ -221,28 +250,36 @@ def evaluate(
     sizes = {(s.height, s.width) for s in sequences}
     if len(sizes) != 1:
         raise ValueError(f"all sequences of a batch need one image size, got {sorted(sizes)}")
-    static = _structure(configs)
+    if runs is None:
+        pairs = list(itertools.product(range(len(sequences)), range(len(configs))))
+        pairs = pairs[jax.process_index()::jax.process_count()]
+    else:
+        pairs = list(runs)
+        bad = [p for p in pairs if not (0 <= p[0] < len(sequences) and 0 <= p[1] < len(configs))]
+        if bad:
+            raise ValueError(f"runs {bad} name no (sequence, configuration) of "
+                             f"{len(sequences)} sequences and {len(configs)} configurations")
+    static = _structure([configs[c] for _, c in pairs] or configs)
     t_start = time.perf_counter()
     sources: dict[tuple, _Frames] = {}
-    lanes: list[_Lane] = []
-    for s, seq in enumerate(sequences):
+    mine: list[_Lane] = []
+    for s, c in pairs:
+        seq, config = sequences[s], configs[c]
         n = len(seq) if max_frames is None else min(len(seq), max_frames)
-        for c, config in enumerate(configs):
-            key = (s, _preprocess_key(config))
-            if key not in sources:
-                sources[key] = _Frames(seq, config, n)
-            run = BatchRun(seq.name, c, config)
-            odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq),
-                           readout_s=camera_readout(seq))
-            lanes.append(_Lane(run, odo, sources[key], np.asarray(seq.timestamps[:n])))
-    mine = lanes[jax.process_index()::jax.process_count()]
+        key = (s, _preprocess_key(config))
+        if key not in sources:
+            sources[key] = _Frames(seq, config, n)
+        run = BatchRun(seq.name, c, config)
+        odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq),
+                       readout_s=camera_readout(seq))
+        mine.append(_Lane(run, odo, sources[key], np.asarray(seq.timestamps[:n])))
     devices = list(jax.local_devices() if devices is None else devices)
     sharding = (NamedSharding(Mesh(np.array(devices), ("runs",)), PartitionSpec("runs"))
                 if len(devices) > 1 else None)
     step = _batched(static, chunk, sharding)
     # one program for all: rolling-shutter rates for every run when any run has one (a
     # rate of 0 is a global shutter's solve, to the bit)
-    shutter = any(lane.odo.readout_s > 0 for lane in lanes)
+    shutter = any(lane.odo.readout_s > 0 for lane in mine)
     srcs = list(sources.values())
     total = sum(len(lane.timestamps) for lane in mine)
     bar = tqdm(total=total, desc="batch", unit="frame", disable=not progress, leave=False)
@@ -256,6 +293,7 @@ def evaluate(
                         lane.odo.track_frame(lane.frames[i], lane.timestamps[i]))
                     lane.position += 1
                     bar.update(1)
+            _report_finished(mine, t_start, on_run)
             live = [lane for lane in mine if not lane.done]
             if not live:
                 break
@@ -301,6 +339,21 @@ def evaluate(
             lane.run.num_keyframes = lane.odo.num_keyframes
     return BatchResult(runs=[lane.run for lane in mine], wall_s=time.perf_counter() - t_start,
                        calls=calls, solved=solved, devices=[str(d) for d in devices])
+
+
+def _report_finished(lanes: list[_Lane], t_start: float,
+                     on_run: Callable[[BatchRun], None] | None) -> None:
+    """Close the trackers of runs that just finished, stamp their batch time per frame and
+    hand them to ``on_run``."""
+    tracked = sum(lane.position for lane in lanes)
+    for lane in lanes:
+        if lane.done and not lane.reported:
+            lane.reported = True
+            lane.odo.close()
+            lane.run.num_keyframes = lane.odo.num_keyframes
+            lane.run.batch_ms_per_frame = (time.perf_counter() - t_start) * 1e3 / max(tracked, 1)
+            if on_run is not None:
+                on_run(lane.run)
 
 
 def _conclude_chunk(lane: _Lane, out, chunk: int, bar: tqdm) -> None:
