@@ -690,3 +690,12 @@ def catalogue() -> str:
 
 if __name__ == "__main__":
     sys.stdout.write(catalogue())
+
+
+@pytest.mark.parametrize("max_frames", [0, -3])
+def test_run_refuses_a_max_frames_under_one(max_frames: int) -> None:
+    from edgevo_jax import Config, load_sequence, run
+    from edgevo_jax.datasets import BUNDLED_CLIP
+
+    with pytest.raises(ValueError, match="max_frames must be at least 1"):
+        run(load_sequence(BUNDLED_CLIP), Config(), max_frames=max_frames, progress=False)

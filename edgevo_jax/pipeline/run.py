@@ -123,7 +123,10 @@ def run_sequence(
     ``started``: the ``time.perf_counter()`` the start-up is counted from (None: this call;
     the CLI passes its own start). ``on_frame(result, rgb, frame, odometry)`` is called
     after each frame is concluded, with its rectified rgb and pre-processed ``Frame`` and
-    the tracker in its state after the frame (e.g. ``viz.recording.RerunRecording``)."""
+    the tracker in its state after the frame (e.g. ``viz.recording.RerunRecording``).
+    ValueError when ``max_frames`` is not positive (None: every frame)."""
+    if max_frames is not None and max_frames < 1:
+        raise ValueError(f"max_frames must be at least 1 (None: every frame), got {max_frames}")
     started = time.perf_counter() if started is None else started
     odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq), params=params,
                    readout_s=camera_readout(seq))
