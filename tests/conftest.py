@@ -67,14 +67,18 @@ def shared_clip() -> Callable[[str], Path]:
 
 
 @pytest.fixture
-def kept_programs(tmp_path: Path):
+def kept_programs(tmp_path: Path, monkeypatch):
     """Programs exported to and loaded from ``tmp_path`` (``edgevo_jax.programs``) for the
-    test, then no longer kept."""
-    from edgevo_jax.programs import keep_programs
+    test, then no longer kept. Through the cache's own variable, as a user sets it: every
+    tracker switches the cache on (``programs.enable_cache``) and would otherwise put the
+    session's setting (no cache) back."""
+    from edgevo_jax import programs
 
-    keep_programs(tmp_path)
+    monkeypatch.setenv(programs.CACHE_ENV, str(tmp_path))
+    programs.enable_cache()
     yield tmp_path
-    keep_programs(None)
+    monkeypatch.setenv(programs.CACHE_ENV, "")
+    programs.enable_cache()
 
 
 def load_script(name: str) -> ModuleType:
