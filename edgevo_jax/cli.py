@@ -438,8 +438,11 @@ def _sweep(args: argparse.Namespace) -> int:
               f"lost {record['lost']}", flush=True)
 
     try:
+        from .viz.sweep import plot_sweep
+
         share, records = sw.run_sweep(plan, args.out, progress=not args.no_progress,
-                                      check=sw.children_check(children), on_done=done)
+                                      check=sw.children_check(children), on_done=done,
+                                      plot=plot_sweep)
     except KeyboardInterrupt:
         print(f"edgevo: {tag}interrupted; finished runs are in {args.out}: run the same "
               "command again to go on", file=sys.stderr)

@@ -514,10 +514,11 @@ def summary_markdown(sweep: Sweep, rows: list[dict], settings: list[dict]) -> st
 
 
 def write_summary(sweep: Sweep, out: str | os.PathLike[str],
-                  records: dict[str, dict] | None = None) -> list[Path]:
+                  records: dict[str, dict] | None = None, *,
+                  plot: Callable[[Sweep, list[dict], Path], Path] | None = None) -> list[Path]:
     """Write ``runs.jsonl``, ``summary.md``, ``summary.csv``, ``summary_settings.csv`` and,
-    with matplotlib, ``summary.png`` from the runs' records (default: read from ``out``).
-    Returns the files written."""
+    with ``plot`` (``viz.sweep.plot_sweep``, which needs matplotlib), ``summary.png`` from
+    the runs' records (default: read from ``out``). Returns the files written."""
     out = Path(out)
     records = read_records(out) if records is None else records
     rows, settings = summary_tables(sweep, records)
@@ -534,45 +535,12 @@ def write_summary(sweep: Sweep, out: str | os.PathLike[str],
         tmp.write_text(text)
         os.replace(tmp, out / name)
         written.append(out / name)
-    try:
-        written.append(_plot(sweep, rows, out / "summary.png"))
-    except ImportError:
-        pass  # the plot needs matplotlib (pip install edgevo_jax[viz])
+    if plot is not None:
+        try:
+            written.append(plot(sweep, rows, out / "summary.png"))
+        except ImportError:
+            pass  # the plot needs matplotlib (pip install edgevo_jax[viz])
     return written
-
-
-def _plot(sweep: Sweep, rows: list[dict], path: Path) -> Path:
-    """ATE (mm) and ms per frame of every run against its frame step and setting, one
-    colour per source, one marker per seed."""
-    from ..viz._canvas import figure, save
-
-    keys = list(dict.fromkeys((r["frame_step"], r["setting"]) for r in rows))
-    sources = list(dict.fromkeys(r["sequence"] for r in rows))
-    markers = "os^Dv<>P*X"
-    fig = figure((max(6.0, 0.6 * len(keys) + 2), 6.5))
-    ax_ate, ax_ms = fig.subplots(2, 1, sharex=True)
-    for r in rows:
-        x = keys.index((r["frame_step"], r["setting"]))
-        x += 0.1 * (sources.index(r["sequence"]) - (len(sources) - 1) / 2)
-        color = f"C{sources.index(r['sequence']) % 10}"
-        marker = markers[sweep.seeds.index(r["seed"]) % len(markers)]
-        if r["ate_rmse_m"] is not None:
-            ax_ate.scatter(x, r["ate_rmse_m"] * 1e3, color=color, marker=marker, s=24)
-        if r["ms_per_frame"] is not None:
-            ax_ms.scatter(x, r["ms_per_frame"], color=color, marker=marker, s=24)
-    for k, name in enumerate(sources):
-        ax_ate.scatter([], [], color=f"C{k % 10}", label=name)
-    ax_ate.legend(fontsize=7, loc="best")
-    ax_ate.set_ylabel("ATE RMSE (mm)")
-    ax_ms.set_ylabel("ms per frame (batch)")
-    ax_ms.set_xticks(range(len(keys)))
-    ax_ms.set_xticklabels([f"step {s}: {label}" for s, label in keys], rotation=30,
-                          ha="right", fontsize=7)
-    ax_ate.set_title(f"{sweep.path.name}: {len(rows)} runs (markers: seeds "
-                     + ", ".join(f"{markers[i % len(markers)]} {s}"
-                                 for i, s in enumerate(sweep.seeds)) + ")", fontsize=9)
-    fig.tight_layout()
-    return save(fig, path)
 
 
 def free_port() -> int:
@@ -644,11 +612,14 @@ def note_failure(out: str | os.PathLike[str], process: int, error: BaseException
 
 def run_sweep(sweep: Sweep, out: str | os.PathLike[str], *, progress: bool = True,
               check: Callable[[], None] | None = None,
-              on_done: Callable[[dict], None] | None = None) -> tuple[SweepProgress, dict]:
+              on_done: Callable[[dict], None] | None = None,
+              plot: Callable[[Sweep, list[dict], Path], Path] | None = None,
+              ) -> tuple[SweepProgress, dict]:
     """This process's part of a sweep: its share (``run_share``, by ``jax.process_index()``
     of ``jax.process_count()``), then wait for every run (``wait_for_runs`` with ``check``),
     then, under ``jax.distributed``, meet the other processes; process 0 then writes the
-    summary (``write_summary``). Returns this process's progress and every run's record."""
+    summary (``write_summary``, with ``plot``). Returns this process's progress and every
+    run's record."""
     import jax
 
     index, count = jax.process_index(), jax.process_count()
@@ -669,5 +640,5 @@ def run_sweep(sweep: Sweep, out: str | os.PathLike[str], *, progress: bool = Tru
     if count > 1:
         multihost_utils.sync_global_devices("edgevo sweep: every run written")
     if index == 0:
-        write_summary(sweep, out, records)
+        write_summary(sweep, out, records, plot=plot)
     return done, records

@@ -15,6 +15,8 @@ The ``edgevo plot`` command (``edgevo_jax.cli``) makes each figure with one comm
 - :func:`plot_ablation`: edges used vs ATE (EdgeVO Fig. 6) and time per frame vs ATE
   (Fig. 1d), from the records that ``scripts/ablation_selection.py`` aggregates.
 - :func:`plot_benchmark`: time per frame vs ATE per method, from ``scripts/bench.py`` rows.
+- :func:`sweep.plot_sweep`: ATE and ms per frame of every run of a sweep (``edgevo batch
+  SWEEP.toml``'s ``summary.png``).
 - :func:`read_results`: the records of a benchmark, ablation or ``edgevo run --stats`` JSON.
 """
 
