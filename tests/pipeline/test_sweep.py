@@ -100,6 +100,7 @@ def test_sweep_writes_runs_and_summary(single):
                                                  ["2", "num_edges=256", "1", str(n[1])],
                                                  ["2", "num_edges=512", "1", str(n[1])]]
     assert "| 2 | num_edges=512 | 1 |" in (out / "summary.md").read_text()
+    assert (out / "summary.png").read_bytes()[:4] == b"\x89PNG"  # matplotlib: the dev extra
     # a second sweep finds everything written and runs nothing
     before = (out / "log" / "process-0.jsonl").read_bytes()
     assert main(["batch", str(toml), "--out", str(out), "--no-progress"]) == 0
