@@ -389,6 +389,7 @@ def _sweep(args: argparse.Namespace) -> int:
     """``edgevo batch SWEEP.toml --out DIR``: this process's part of the sweep (its share
     of the runs, then, as process 0, the summary); with --processes N, start processes
     1 .. N-1 first."""
+    from .pipeline import processes as procs
     from .pipeline import sweep as sw
 
     if args.sequences:
@@ -418,10 +419,10 @@ def _sweep(args: argparse.Namespace) -> int:
 
     children: list = []
     if args.processes > 1:
-        coordinator = f"localhost:{sw.free_port()}"
+        coordinator = f"localhost:{procs.free_port()}"
         command = [sys.executable, "-m", "edgevo_jax.cli", "batch", str(args.configs),
                    "--out", str(args.out), "--no-progress"]
-        children = sw.start_processes(command, args.processes, coordinator)
+        children = procs.start_processes(command, args.processes, coordinator)
         jax.distributed.initialize(coordinator, args.processes, 0)
     elif all(joined):
         jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
@@ -441,7 +442,7 @@ def _sweep(args: argparse.Namespace) -> int:
         from .viz.sweep import plot_sweep
 
         share, records = sw.run_sweep(plan, args.out, progress=not args.no_progress,
-                                      check=sw.children_check(children), on_done=done,
+                                      check=procs.children_check(children), on_done=done,
                                       plot=plot_sweep)
     except KeyboardInterrupt:
         print(f"edgevo: {tag}interrupted; finished runs are in {args.out}: run the same "
