@@ -6,7 +6,7 @@ The source frame plays the keyframe: its edges with depth are selected
 (``selection.keyframe_edges``, with the keyframe's depth points when ``Config.depth_residual``)
 and aligned, coarse to fine, to the target frame's distance fields from the initial guess
 (``frontend.align.track``, the program the tracker's recovery runs). The result is judged by
-the tracker's own checks (``recovery.lost_reason``, ``recovery.weak_reason`` and the basin
+the tracker's own checks (``decision.lost_reason``, ``decision.weak_reason`` and the basin
 check of ``Odometry``).
 """
 
@@ -30,13 +30,12 @@ from ..hostmem import to_host
 from ..image.preprocess import Frame, preprocess
 from ..programs import enable_cache, program, release_compiled
 from . import recovery
+from .decision import inlier_share, lost_reason, weak_reason
+from .inputs import rigid_transform
 from .results import LOST, OK, WEAK
 
 _track_jit = program(track, static_argnames="config")
 
-#: largest |R^T R - I| and |last row - [0, 0, 0, 1]| of a matrix taken as a rigid transform
-#: (a float32 rotation is orthonormal to ~1e-7; an IMU's integrated one to ~1e-6)
-RIGID_TOL = 1e-4
 
 
 class AlignResult(NamedTuple):
@@ -69,26 +68,6 @@ class _Source:
     keypoints: dict = field(default_factory=dict)
 
 
-def rigid_transform(value, *, name: str) -> np.ndarray:
-    """``value`` as a (4, 4) float64 rigid transform (rotation re-orthonormalised); ValueError
-    naming ``name`` when it is not one: another shape, a non-finite entry, a rotation block
-    that is no rotation (|R^T R - I| or its determinant's distance from 1 over ``RIGID_TOL``)
-    or a last row other than [0, 0, 0, 1]."""
-    T = np.asarray(value, np.float64) if value is not None else None
-    if T is None or T.shape != (4, 4):
-        shape = None if T is None else T.shape
-        raise ValueError(f"{name} must be a 4x4 rigid transform, got shape {shape}")
-    if not np.all(np.isfinite(T)):
-        raise ValueError(f"{name} has non-finite entries (NaN or inf): {T.tolist()}")
-    R = T[:3, :3]
-    err = max(float(np.max(np.abs(R.T @ R - np.eye(3)))), abs(float(np.linalg.det(R)) - 1.0))
-    if err > RIGID_TOL:
-        raise ValueError(f"{name} is not rigid: its rotation block is off a rotation by "
-                         f"{err:.2g} (R^T R = I, det R = 1 within {RIGID_TOL:g})")
-    if float(np.max(np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]))) > RIGID_TOL:
-        raise ValueError(f"{name} is not rigid: its last row is {T[3].tolist()}, not "
-                         "[0, 0, 0, 1]")
-    return orthonormalise_np(T)
 
 
 def _image(rgb, name: str) -> np.ndarray:
@@ -148,9 +127,9 @@ def align(
       the frames' times and the camera's velocity, which the streaming ``Odometry`` has).
 
     Success (``AlignResult.success``) is the tracker's notion: LOST when the solve cannot be
-    used (``recovery.lost_reason``: too few inliers, a non-finite pose, an ill-conditioned
+    used (``decision.lost_reason``: too few inliers, a non-finite pose, an ill-conditioned
     covariance), or when the source has fewer than ``Config.min_inliers`` edges with depth;
-    WEAK (usable, doubtful) for ``recovery.weak_reason`` or a solve that went farther from
+    WEAK (usable, doubtful) for ``decision.weak_reason`` or a solve that went farther from
     ``init`` than the basin without an ORB / SIFT start converging to it
     (``recovery.confirm``, with ``Config.recovery_features``). The tracker's comparison
     with the recent frames' inlier shares has no history here.
@@ -206,21 +185,21 @@ def align(
                                   knobs=knobs, shutter=None))
 
     res = solve(kf, target, T_init)
-    lost = recovery.lost_reason(target, res, config)
+    lost = lost_reason(target.num_edges, res, config)
     if lost is not None:
-        return _lost(T_init, lost, int(res.inliers), recovery.inlier_share(res))
-    reason = recovery.weak_reason(target, res, config)
+        return _lost(T_init, lost, int(res.inliers), inlier_share(res))
+    reason = weak_reason(bool(np.any(target.edge_depth > 0)), res, config)
     basin, moved = basin_px(config), float(res.moved)
     if reason is None and moved > basin and not recovery.confirm(
             target, kf, res, align=solve, intrinsics=intr, config=config,
-            usable=lambda out: recovery.lost_reason(target, out, config) is None):
+            usable=lambda out: lost_reason(target.num_edges, out, config) is None):
         reason = (f"moved {moved:.0f} px from its start, past the {basin:.0f} px basin, not "
                   "confirmed by features")
     cov = np.asarray(res.covariance, np.float64)
     information = np.linalg.inv(0.5 * (cov + cov.T))
     return AlignResult(True, orthonormalise_np(np.asarray(res.T_c_k, np.float64)),
                        0.5 * (information + information.T), WEAK if reason else OK, reason,
-                       int(res.inliers), recovery.inlier_share(res))
+                       int(res.inliers), inlier_share(res))
 
 
 def _lost(T_init: np.ndarray, reason: str, inliers: int = 0, share: float = 0.0

@@ -1,17 +1,17 @@
-"""Judging a frame's solve (``lost_reason``, ``weak_reason``, ``inlier_share``), the
-recovery search (a doubted or lost frame aligned again from other starts) and the
-confirmation of a solve by an independent start (``confirm``).
+"""The recovery search (a doubted or lost frame aligned again from other starts) and the
+confirmation of a solve by an independent start (``confirm``): host effects the decision
+(``decision``) asks for.
 
-A frame's solve is judged by its inlier share (``inlier_share``). When the share is far under
-the recent frames' (or the solve is unusable), ``search`` aligns the frame again, against the
-current keyframe, in order of cost: from the keyframe's own pose, the last frame's (no motion),
-constant velocity scaled by the frames' time steps, doubled and halved (``motion_starts``);
-then from the pose of matched ORB, then SIFT keypoints (``feature_start``: motions far beyond
-the edge alignment's basin; ORB is ~10x cheaper, SIFT finds poses across wider motions); then
-against the earlier keyframes kept, from the prediction and the same starts. The highest share
-wins. The search stops once the best is good enough, or when the ORB start, independent
-evidence, converges to the first solve's pose (``agree``): the doubt came from the scene, not
-the basin.
+A frame's solve is judged by its inlier share (``decision.inlier_share``). When the share is
+far under the recent frames' (or the solve is unusable), ``search`` aligns the frame again,
+against the current keyframe, in order of cost: from the keyframe's own pose, the last frame's
+(no motion), constant velocity scaled by the frames' time steps, doubled and halved
+(``motion_starts``); then from the pose of matched ORB, then SIFT keypoints
+(``feature_start``: motions far beyond the edge alignment's basin; ORB is ~10x cheaper, SIFT
+finds poses across wider motions); then against the earlier keyframes kept, from the
+prediction and the same starts. The highest share wins. The search stops once the best is good
+enough, or when the ORB start, independent evidence, converges to the first solve's pose
+(``agree``): the doubt came from the scene, not the basin.
 
 A solve is *confirmed* when an alignment from a start made of image features (ORB, then
 SIFT keypoints matched, and PnP) and one from another start converge to the same pose: two
@@ -31,6 +31,7 @@ from ..config import Config
 from ..frontend import features
 from ..geometry import inverse_np, scale_motion_np
 from ..image.preprocess import Frame
+from .decision import inlier_share
 
 #: two alignments agree (converged into one minimum) within this translation (m) and rotation
 #: (degrees): ~2 px at 1.5 m for f ~ 530 px, under the spacing of distinct minima (edges)
@@ -44,41 +45,6 @@ class Found(NamedTuple):
     keyframe: Any
     result: Any
     confirmed: bool
-
-
-def inlier_share(res) -> float:
-    """Level-0 inliers per keyframe edge in view of a TrackResult (0 with none in view)."""
-    return float(res.inliers) / max(float(res.visible), 1.0)
-
-
-def lost_reason(frame: Frame, res, config: Config) -> str | None:
-    """Why a solve result cannot be used (None: it can): no edges in the frame,
-    non-finite pose or covariance, too few inliers, ill-conditioned covariance."""
-    if frame.num_edges == 0:
-        return "no edges in the frame"
-    T = np.asarray(res.T_c_k, np.float64)
-    cov = np.asarray(res.covariance, np.float64)
-    if not (np.all(np.isfinite(T)) and np.all(np.isfinite(cov))):
-        return "non-finite pose"
-    if int(res.inliers) < config.min_inliers:
-        return f"too few inliers ({int(res.inliers)})"
-    eig = np.linalg.eigvalsh(0.5 * (cov + cov.T))  # symmetric: cheaper than cond's SVD
-    cond = eig[-1] / eig[0] if eig[0] > 0 else np.inf
-    if not cond <= config.max_covariance_condition:
-        return f"covariance ill-conditioned (condition {cond:.2g})"
-    return None
-
-
-def weak_reason(frame: Frame, res, config: Config) -> str | None:
-    """Why a usable result is doubtful: inliers whose mean residual is over half the gate
-    (random matches under the gate average half of it), or a frame without depth (it
-    cannot become a keyframe)."""
-    mean = float(res.mean_residual)
-    if mean > 0.5 * config.max_residual[0]:
-        return f"mean residual {mean:.2f} px over half the gate"
-    if not np.any(frame.edge_depth > 0):
-        return "no depth (cannot become a keyframe)"
-    return None
 
 
 def agree(a, b) -> bool:

@@ -86,7 +86,7 @@ def test_tracker_with_the_depth_residual_tracks_the_bundled_clip():
     config = Config(depth_residual=True)
     odo = Odometry(config, seq.intrinsics)
     r0 = odo.track(*seq.load_frame(0), seq.timestamps[0])
-    assert r0.state == "OK" and odo._kf.edges.depth_pts.shape == (3, config.depth_points)
+    assert r0.state == "OK" and odo.state.keyframe.edges.depth_pts.shape == (3, config.depth_points)
     run = run_sequence(seq, config, progress=False)
     stats = summarise(run, seq)
     assert stats["lost"] == 0 and stats["ate_rmse_m"] < 0.01, stats

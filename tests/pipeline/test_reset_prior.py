@@ -15,7 +15,7 @@ from edgevo_jax.datasets.groundtruth import groundtruth_pose_at
 from edgevo_jax.frontend.chunk import batch_of_one, track_next
 from edgevo_jax.geometry import exp_np, inverse_np, predict_np, rotation_angle_np
 from edgevo_jax.io import poses7_to_matrices
-from edgevo_jax.pipeline import odometry as tracker_module
+from edgevo_jax.pipeline import effects as tracker_module
 
 
 @pytest.fixture(scope="module")

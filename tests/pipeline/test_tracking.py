@@ -19,7 +19,7 @@ from edgevo_jax.frontend.chunk import batch_of_one, track_next
 from edgevo_jax.frontend.selection import keyframe_edges
 from edgevo_jax.geometry import rotation_angle_np
 from edgevo_jax.image.preprocess import frame_from_edges, preprocess
-from edgevo_jax.pipeline import odometry as tracker_module
+from edgevo_jax.pipeline import effects as tracker_module
 from edgevo_jax.pipeline.run import run_sequence, summarise
 
 

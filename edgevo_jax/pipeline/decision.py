@@ -1,0 +1,435 @@
+"""The per-frame decision of the streaming tracker: a pure function of the tracker's state,
+the frame's solve and facts, with the host effects it needs asked for as actions.
+
+State (``TrackerState``): a few small frozen records: the keyframe (``Keyframe``) and the
+earlier ones kept for recovery, the motion history (``Motion``: the last two poses and their
+times, and the device's prediction inputs), the inlier-share history (``shares``), the lost
+clock (``tracked_t``: when a frame was last tracked) and the window's hand-over
+(``begin_frame``, ``refine``: keyframe poses the window refined, taken at fixed frames).
+
+``decide(state, evidence, config)`` reads the frame's solve and facts (``Evidence``) and
+returns ``Decision(state, result, actions)``. Where it needs something only a host effect can
+give, it returns the unchanged state, no result and that one action: ``Search`` (the
+recovery search from other starts and keyframes), ``Confirm`` (an alignment from a feature
+start), ``Handover`` (all refinements the window has made, waited for) or ``MakeKeyframe``
+(edge selection, the window's hand-over of the new keyframe). The driver
+(``odometry.Odometry``) carries it out, adds the outcome to the evidence and calls again;
+each action is asked for at most once per frame. With every answer in, the result is the
+frame's ``FrameResult`` and the state is the one the next frame starts from. The rules
+(docs/decisions.md), in order:
+
+1. the solve is unusable (``lost_reason``), its inlier share is under ``doubt_share_ratio``
+   of the recent frames' highest, or no share has been seen yet: ``Search``;
+2. still under ``lost_share_ratio`` of that reference from every start: LOST;
+3. tracked: the pose from the keyframe (an earlier one found by the search takes over),
+   the keyframe reason (``frontend.keyframes``), WEAK when the residuals are high, the frame
+   has no depth, or the solve is doubtful (share under the doubt ratio, or it moved past the
+   alignment's basin) and no feature start confirms it (``Confirm``);
+4. LOST: the pose is the prediction (finite, a rotation); the keyframe stays, unless the
+   loss outlasts ``kf_max_interval_s`` (a new keyframe at the guess);
+5. a new keyframe is built on refined poses only (``Handover`` first); when its selection
+   finds too few edges the old keyframe stays.
+This module runs no JAX: each rule is tested with plain numbers (tests/pipeline/test_decision.py).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from ..config import Config
+from ..derive import basin_px
+from ..frontend.keyframes import keyframe_reason
+from ..geometry import inverse_np, orthonormalise_np, predict_np
+from ..hostmem import aligned_array
+from .results import LOST, OK, WEAK, FrameResult
+
+#: frames (not lost) whose highest inlier share is the reference for the share ratios
+SHARE_HISTORY = 5
+
+
+@dataclass(frozen=True)
+class Keyframe:
+    """A keyframe: its number (``id``, from 0), timestamp (s), pose T_world_kf (4, 4), selected
+    edges in use and the level-0 inliers of the frames tracked against it. ``edges`` (device
+    arrays), ``frame`` (its ``Frame``) and ``keypoints`` (by kind, detected when recovery first
+    needs them) are the driver's; the decision never reads them."""
+
+    id: int
+    timestamp: float
+    pose: np.ndarray
+    num_edges: int
+    inlier_counts: tuple[int, ...] = ()
+    edges: Any = field(default=None, compare=False, repr=False)
+    frame: Any = field(default=None, compare=False, repr=False)
+    keypoints: dict = field(default_factory=dict, compare=False, repr=False)
+
+
+@dataclass(frozen=True)
+class Motion:
+    """The last (at most two) frames' T_world_cam and timestamps, oldest first, and the
+    device's inputs for the next prediction: A = T_(i-1)_kf, B = T_(i-2)_kf (float32)."""
+
+    poses: tuple[np.ndarray, ...] = ()
+    times: tuple[float, ...] = ()
+    rel: tuple[np.ndarray, np.ndarray] | None = None
+
+    def predict(self, prior: np.ndarray | None = None) -> np.ndarray:
+        """The next T_world_cam: T_w_last @ prior (prior = T_prev_cur), else constant velocity
+        T_w_last (T_w_prev^-1 T_w_last) (``predict_np``); the last pose with one frame."""
+        if prior is not None:
+            return self.poses[-1] @ prior
+        if len(self.poses) < 2:
+            return self.poses[-1]
+        return predict_np(self.poses[1], self.poses[0])
+
+    def push(self, pose: np.ndarray, timestamp: float) -> Motion:
+        """The motion with a frame at ``pose``, ``timestamp`` added (the oldest dropped)."""
+        return Motion((*self.poses, pose)[-2:], (*self.times, timestamp)[-2:], self.rel)
+
+
+@dataclass(frozen=True)
+class TrackerState:
+    """What the tracker carries from frame to frame (module doc). ``previous``: the earlier
+    keyframes recovery tries, oldest first; ``index``: frames concluded so far."""
+
+    keyframe: Keyframe | None = None
+    previous: tuple[Keyframe, ...] = ()
+    motion: Motion = Motion()
+    shares: tuple[float, ...] = ()
+    tracked_t: float | None = None
+    index: int = 0
+    num_keyframes: int = 0
+
+
+class FrameFacts(NamedTuple):
+    """What the decision reads of the frame itself: timestamp (s), its edge count, whether any
+    edge has depth."""
+
+    timestamp: float
+    num_edges: int
+    has_depth: bool
+
+
+class Timing(NamedTuple):
+    """The driver's clocks for the frame's result (ms): preprocessing, solve (dispatch to
+    read-back), the tracker's time on the local window (None with the window off), and from
+    dispatch to the decision."""
+
+    preprocess_ms: float = 0.0
+    solve_ms: float = 0.0
+    map_ms: float | None = None
+    elapsed_ms: float = 0.0
+
+
+# -- actions: host effects the decision asks for -----------------------------------------------
+class Search(NamedTuple):
+    """Align the frame again from other starts and keyframes (``recovery.search``); ``first``:
+    the solve from the prediction, None when unusable; ``reference``: the share to beat."""
+
+    first: Any
+    reference: float | None
+
+
+class Confirm(NamedTuple):
+    """Align the frame to ``keyframe`` from a feature start; does it converge to ``solve``?"""
+
+    keyframe: Keyframe
+    solve: Any
+
+
+class Handover(NamedTuple):
+    """Wait for every refinement handed to the window and give them (``Mapper.due(None)``)."""
+
+
+class MakeKeyframe(NamedTuple):
+    """Make the frame keyframe number ``id`` at ``pose`` (T_world_cam), with the motion of the
+    frames before it: select its edges and hand it to the window. The answer is its
+    ``Keyframe`` (pose refined where the window runs inline) and the selection time, or None
+    when it has too few usable edges."""
+
+    id: int
+    pose: np.ndarray
+    timestamp: float
+    motion: Motion
+
+
+class NewKeyframe(NamedTuple):
+    """The answer to ``MakeKeyframe``: the keyframe made and its selection's time (ms)."""
+
+    keyframe: Keyframe
+    select_ms: float
+
+
+@dataclass(frozen=True)
+class Evidence:
+    """The frame's facts, its solve and what the actions asked for so far gave. ``solve``: a
+    ``frontend.align.TrackResult`` on the host (None for a frame with no keyframe to solve
+    against); ``predicted``: the frame's predicted T_world_cam; ``prior``: its motion prior
+    T_prev_cur, if given. ``searched`` / ``found`` (a ``recovery.Found`` or None),
+    ``confirmed`` (None: not asked), ``handover`` (the window's refinements, ``Mapped``;
+    None: not asked), ``made`` (the ``MakeKeyframe`` answer; ``made_asked``) and
+    ``intrinsics_moved`` (the window's intrinsics were taken in this frame)."""
+
+    facts: FrameFacts
+    solve: Any
+    predicted: np.ndarray
+    prior: np.ndarray | None = None
+    timing: Timing = Timing()
+    searched: bool = False
+    found: Any = None
+    confirmed: bool | None = None
+    handover: tuple | None = None
+    made_asked: bool = False
+    made: NewKeyframe | None = None
+    intrinsics_moved: bool = False
+
+
+class Decision(NamedTuple):
+    """``decide``'s answer (its doc). ``plain``: the state went on as the solve predicted it
+    (no loss, recovery, keyframe or new intrinsics), so that solves of later frames made from
+    the old state (a chunk, a batch) still hold."""
+
+    state: TrackerState
+    result: FrameResult | None
+    actions: tuple
+    plain: bool = False
+
+
+# -- judging a solve ---------------------------------------------------------------------------
+def inlier_share(res) -> float:
+    """Level-0 inliers per keyframe edge in view of a TrackResult (0 with none in view)."""
+    return float(res.inliers) / max(float(res.visible), 1.0)
+
+
+def lost_reason(num_edges: int, res, config: Config) -> str | None:
+    """Why a solve result cannot be used (None: it can): no edges in the frame,
+    non-finite pose or covariance, too few inliers, ill-conditioned covariance."""
+    if num_edges == 0:
+        return "no edges in the frame"
+    T = np.asarray(res.T_c_k, np.float64)
+    cov = np.asarray(res.covariance, np.float64)
+    if not (np.all(np.isfinite(T)) and np.all(np.isfinite(cov))):
+        return "non-finite pose"
+    if int(res.inliers) < config.min_inliers:
+        return f"too few inliers ({int(res.inliers)})"
+    eig = np.linalg.eigvalsh(0.5 * (cov + cov.T))  # symmetric: cheaper than cond's SVD
+    cond = eig[-1] / eig[0] if eig[0] > 0 else np.inf
+    if not cond <= config.max_covariance_condition:
+        return f"covariance ill-conditioned (condition {cond:.2g})"
+    return None
+
+
+def weak_reason(has_depth: bool, res, config: Config) -> str | None:
+    """Why a usable result is doubtful: inliers whose mean residual is over half the gate
+    (random matches under the gate average half of it), or a frame without depth (it
+    cannot become a keyframe)."""
+    mean = float(res.mean_residual)
+    if mean > 0.5 * config.max_residual[0]:
+        return f"mean residual {mean:.2f} px over half the gate"
+    if not has_depth:
+        return "no depth (cannot become a keyframe)"
+    return None
+
+
+def reference_share(state: TrackerState, config: Config) -> float | None:
+    """The highest inlier share of the last ``SHARE_HISTORY`` frames not lost; None before
+    there are any or with the check off (``doubt_share_ratio`` 0)."""
+    if not state.shares or config.doubt_share_ratio <= 0:
+        return None
+    return float(np.max(state.shares))
+
+
+def under(res, reference: float | None, ratio: float) -> bool:
+    """Whether a result's inlier share is under ``ratio`` x the reference share."""
+    return reference is not None and inlier_share(res) < ratio * reference
+
+
+# -- the window's hand-over ----------------------------------------------------------------------
+def refine(state: TrackerState, mapped: Sequence[Any]) -> TrackerState:
+    """Take the window's refined keyframe poses (``mapping.Mapped``: ``key`` the keyframe's
+    id, ``pose``): each keyframe kept takes its new pose; when it is the current keyframe the
+    last two frame poses move with it (their motion relative to it, which the device predicts
+    from, is unchanged). A keyframe the state no longer holds (one a recovery left) is
+    skipped."""
+    for m in mapped:
+        kf = next((k for k in (state.keyframe, *state.previous) if k is not None
+                   and k.id == m.key), None)
+        if kf is None:
+            continue
+        motion = state.motion
+        if state.keyframe is not None and kf.id == state.keyframe.id:
+            correction = m.pose @ inverse_np(kf.pose)
+            motion = dataclasses.replace(motion, poses=tuple(correction @ p for p in motion.poses))
+        state = dataclasses.replace(_with_keyframe(state, dataclasses.replace(kf, pose=m.pose)),
+                                    motion=motion)
+    return state
+
+
+def begin_frame(state: TrackerState, due: Sequence[Any]) -> TrackerState:
+    """Count the frame being concluded and take the refinements ``due`` at it (``refine``)."""
+    return refine(dataclasses.replace(state, index=state.index + 1), due)
+
+
+def _with_keyframe(state: TrackerState, kf: Keyframe) -> TrackerState:
+    """``kf`` in place of every record of the same keyframe (current and earlier)."""
+    def swap(k):
+        return kf if k is not None and k.id == kf.id else k
+    return dataclasses.replace(state, keyframe=swap(state.keyframe),
+                               previous=tuple(swap(k) for k in state.previous))
+
+
+def relative_from_world(motion: Motion, kf_pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A, B (float32) from the last two world poses and the keyframe's (float64)."""
+    rel = [aligned_array(inverse_np(p) @ kf_pose, np.float32) for p in motion.poses]
+    return rel[-1], rel[0]
+
+
+# -- the decision ------------------------------------------------------------------------------
+def decide(state: TrackerState, ev: Evidence, config: Config) -> Decision:
+    """The frame's decision (module doc): the next state, the frame's result and no action;
+    or the unchanged state, no result and the one action the decision needs answered first."""
+    if ev.solve is None:
+        return _first(state, ev, config)
+    facts, res, kf = ev.facts, ev.solve, state.keyframe
+    start_id, confirmed = kf.id, False
+    lost = lost_reason(facts.num_edges, res, config)
+    reference = reference_share(state, config)
+    doubt, lost_ratio = config.doubt_share_ratio, config.lost_share_ratio
+    # lost or doubted (a wrong basin, as after a prediction far off): other starts and other
+    # keyframes; with no reference yet (the first frames) every start is tried
+    if facts.num_edges > 0 and (lost is not None or under(res, reference, doubt)
+                                or (reference is None and doubt > 0)):
+        if not ev.searched:
+            return Decision(state, None, (Search(None if lost else res, reference),))
+        if ev.found is not None:
+            kf, res, confirmed = ev.found
+            lost = None
+    if lost is None and under(res, reference, lost_ratio):
+        lost = (f"inlier share {inlier_share(res):.2f} under {lost_ratio:g} x the recent "
+                f"{reference:.2f} from every start")
+    new, weak = state, None
+    if lost is None:
+        T_c_k = orthonormalise_np(np.asarray(res.T_c_k, np.float64))
+        reason = keyframe_reason(
+            flow=float(res.flow), flow_t=float(res.flow_t), inliers=int(res.inliers),
+            inlier_mean=float(np.mean(kf.inlier_counts)) if kf.inlier_counts else None,
+            dt=facts.timestamp - kf.timestamp, config=config)
+        weak = weak_reason(facts.has_depth, res, config)
+        if weak is None and not confirmed:
+            weak = _doubt_reason(res, reference, config, ev.confirmed)
+            if weak is _ASK:
+                return Decision(state, None, (Confirm(kf, res),))
+        kf = dataclasses.replace(kf, inlier_counts=(*kf.inlier_counts, int(res.inliers)))
+        # a keyframe the search found (an earlier one) takes over
+        new = dataclasses.replace(_with_keyframe(state, kf), keyframe=kf, tracked_t=facts.timestamp,
+                                  shares=(*state.shares, inlier_share(res))[-SHARE_HISTORY:])
+    else:  # the prediction, flagged; the keyframe stays (docs/decisions.md), unless the loss
+        # outlasts the keyframe interval: the old view may be gone for good
+        since = facts.timestamp - (state.tracked_t if state.tracked_t is not None
+                                   else kf.timestamp)
+        reason = "lost" if since >= config.kf_max_interval_s else None
+    # a new keyframe is built on refined poses only; a lost frame takes them as well
+    handed = False
+    if reason or lost is not None:
+        if ev.handover is None:
+            return Decision(state, None, (Handover(),))
+        new = refine(new, ev.handover)
+        handed = bool(ev.handover)
+    if lost is None:
+        pose = new.keyframe.pose @ inverse_np(T_c_k)
+    else:
+        pose = new.motion.predict(ev.prior) if handed else ev.predicted
+        # lost frames in a row extrapolate again and again: keep R a rotation, stay finite
+        pose = orthonormalise_np(pose) if np.all(np.isfinite(pose)) else pose
+        if not np.all(np.isfinite(pose)):
+            pose = new.motion.poses[-1]
+    used = new.keyframe.num_edges
+    made = None
+    if reason:
+        if not ev.made_asked:
+            return Decision(state, None, (MakeKeyframe(new.num_keyframes, pose, facts.timestamp,
+                                                       new.motion),))
+        made = ev.made
+    if made is not None:
+        pose, new = made.keyframe.pose, _install(new, made.keyframe, config)
+    new = dataclasses.replace(new, motion=new.motion.push(pose, facts.timestamp))
+    plain = (lost is None and kf.id == start_id and made is None and res is ev.solve
+             and not ev.intrinsics_moved)
+    # the device predicts the next frame from A, B: the solve's own float32 pose when nothing
+    # changed (as the scan carries it), else from the world poses
+    rel = ((np.asarray(res.T_c_k, np.float32), state.motion.rel[0]) if plain
+           else relative_from_world(new.motion, new.keyframe.pose))
+    new = dataclasses.replace(new, motion=dataclasses.replace(new.motion, rel=rel))
+    result = _result(ev, pose, LOST if lost else (WEAK if weak else OK), lost or weak,
+                     int(res.inliers), None if lost else np.asarray(res.covariance, np.float64),
+                     reason if made else None, used, made,
+                     None if lost else inlier_share(res))
+    return Decision(new, result, (), plain)
+
+
+_ASK = object()  # _doubt_reason: the confirmation is needed and was not asked yet
+
+
+def _doubt_reason(res, reference: float | None, config: Config, confirmed: bool | None):
+    """Why a usable solve nothing independent confirmed is doubtful (WEAK): its share stayed
+    under ``doubt_share_ratio`` of the recent frames' from every start, or it moved farther
+    from its start than the alignment's basin (``derive.basin_px``) and no feature start
+    converges to it (``confirmed``: the ``Confirm`` answer; ``_ASK`` while not asked)."""
+    doubt = config.doubt_share_ratio
+    if under(res, reference, doubt):
+        return (f"inlier share {inlier_share(res):.2f} under {doubt:g} x the recent "
+                f"{reference:.2f}, not confirmed by features")
+    basin, moved = basin_px(config), float(res.moved)
+    if moved > basin:
+        if confirmed is None:
+            return _ASK
+        if not confirmed:
+            return (f"moved {moved:.0f} px from its start, past the {basin:.0f} px basin, not "
+                    "confirmed by features")
+    return None
+
+
+def _install(state: TrackerState, kf: Keyframe, config: Config) -> TrackerState:
+    """``kf`` made the current keyframe; the current one joins the earlier ones recovery
+    tries (``recovery_keyframes`` of them)."""
+    previous = state.previous
+    if state.keyframe is not None:
+        previous = (*previous, state.keyframe)[-(config.recovery_keyframes):]
+    return dataclasses.replace(state, keyframe=kf, previous=previous,
+                               num_keyframes=state.num_keyframes + 1)
+
+
+def _first(state: TrackerState, ev: Evidence, config: Config) -> Decision:
+    """A frame with no keyframe to solve against (the first, or none usable yet): it becomes
+    the keyframe when it has enough edges with depth, else it is LOST at its prediction."""
+    if not ev.made_asked:
+        return Decision(state, None, (MakeKeyframe(state.num_keyframes, ev.predicted,
+                                                   ev.facts.timestamp, state.motion),))
+    new, pose = state, ev.predicted
+    if ev.made is not None:
+        pose, new = ev.made.keyframe.pose, _install(state, ev.made.keyframe, config)
+    new = dataclasses.replace(new, motion=new.motion.push(pose, ev.facts.timestamp))
+    if new.keyframe is not None:
+        new = dataclasses.replace(new, motion=dataclasses.replace(
+            new.motion, rel=relative_from_world(new.motion, new.keyframe.pose)))
+    state_, reason = (OK, None) if ev.made else (LOST, "no edges with depth")
+    result = _result(ev, pose, state_, reason, 0, None, "first" if ev.made else None, 0,
+                     ev.made, None)
+    return Decision(new, result, ())
+
+
+def _result(ev: Evidence, pose, state: str, reason, inliers: int, cov, kf_reason, used: int,
+            made: NewKeyframe | None, share: float | None) -> FrameResult:
+    t = ev.timing
+    return FrameResult(
+        timestamp=ev.facts.timestamp, pose=pose, state=state, reason=reason, inliers=inliers,
+        covariance=cov, keyframe=kf_reason, edges_used=used,
+        select_ms=made.select_ms if made else None,
+        mapping_ms=t.map_ms if t.map_ms is not None and (made or t.map_ms > 0.0) else None,
+        preprocess_ms=t.preprocess_ms, solve_ms=t.solve_ms,
+        total_ms=t.preprocess_ms + t.elapsed_ms, inlier_share=share)

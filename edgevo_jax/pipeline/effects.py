@@ -1,0 +1,216 @@
+"""The streaming tracker's host effects, carried out for its decision (``decision``): device
+solves (the per-frame solve and the alignment the recovery runs), the making of a keyframe
+(edge selection, the depth residual's points, the window's hand-over) and the warm-up that
+compiles every program before the first tracked frame.
+
+``Solver`` holds what every solve of one tracker shares: the configuration's static part and
+numbers, the intrinsics (which the window may refine) and the rolling shutter's readout.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..camera import Intrinsics
+from ..config import Config
+from ..derive import solve_knobs, solve_structure
+from ..frontend import selection
+from ..frontend.align import track
+from ..frontend.chunk import track_next_jit
+from ..frontend.depth import depth_points
+from ..frontend.selection import KeyframeEdges, keyframe_edges
+from ..frontend.shutter import Shutter, shutter_rate, unroll_edges
+from ..geometry import inverse_np, log_np
+from ..hostmem import aligned_array, to_host
+from ..image.preprocess import Frame
+from ..learn.params import Params, solve_knobs_of
+from ..programs import program
+from . import recovery
+from .decision import Confirm, Keyframe, MakeKeyframe, Search, TrackerState, lost_reason, under
+from .mapping import Mapped, Mapper
+
+_track_jit = program(track, static_argnames="config")
+
+
+class Made(NamedTuple):
+    """A keyframe as ``make_keyframe`` made it (``keyframe.pose`` refined when the window
+    runs inline: ``mapped``), the selection time (ms) and the tracker's time on the window."""
+
+    keyframe: Keyframe
+    select_ms: float
+    map_ms: float
+    mapped: Mapped | None
+
+
+class Solver:
+    """The solves of one tracker: ``config``, ``intrinsics`` (replaced when the window refines
+    them), ``readout_s`` (0: a global shutter) and learnt ``params`` (None: the config's
+    numbers). The solve's numbers go in as (traced) arrays and its static part as a jit
+    static argument: configurations that differ in numbers only share one program."""
+
+    def __init__(self, config: Config, intrinsics: Intrinsics, readout_s: float,
+                 params: Params | None) -> None:
+        self.config, self.intrinsics, self.readout_s = config, intrinsics, readout_s
+        self.knobs, self.structure = solve_knobs(config), solve_structure(config)
+        self.reobs_a: float | None = None  # the selection's offset a (None: the config's)
+        if params is not None:
+            self.knobs = solve_knobs_of(params, config)
+            self.reobs_a = float(np.asarray(params.reobs_a, np.float64))
+        self._constants_key: tuple[float, ...] | None = None
+
+    def constants(self) -> tuple[Intrinsics, object]:
+        """Intrinsics and solve knobs as device arrays, made once (and again when the window
+        refines the intrinsics): a jitted call converts each host argument anew."""
+        key = tuple(self.intrinsics)
+        if self._constants_key != key:
+            self._constants = (Intrinsics(*jnp.asarray(key, jnp.float32)),
+                               jax.device_put(self.knobs))
+            self._constants_key = key
+        return self._constants
+
+    def rates(self, timestamps, height: int, times: tuple[float, ...]) -> np.ndarray | None:
+        """The rolling shutter's rates (``shutter.Shutter.rate``, float32 (n,)) of frames at
+        ``timestamps`` after the frames at ``times`` (the last concluded last); None with a
+        global shutter."""
+        if self.readout_s <= 0:
+            return None
+        t = np.asarray(timestamps, np.float64)
+        prev = np.concatenate([[times[-1] if times else t[0]], t[:-1]])
+        return np.array([shutter_rate(self.readout_s, height, b - a) if times or i
+                         else 0.0 for i, (a, b) in enumerate(zip(prev, t, strict=True))],
+                        np.float32)
+
+    def rate(self, timestamp: float, frame: Frame, times: tuple[float, ...]):
+        """``rates`` of one frame, as a float32 scalar (None: a global shutter)."""
+        rates = self.rates([timestamp], frame.shape[0], times)
+        return None if rates is None else rates[0]
+
+    def next(self, kf: Keyframe, frame: Frame, rel, rate):
+        """The per-frame solve from the device's constant-velocity prediction (A, B ``rel``),
+        dispatched: device arrays, not waited for."""
+        intr, knobs = self.constants()
+        return track_next_jit(kf.edges, frame.dist, frame.edge_map, *rel, intr, knobs, rate,
+                              config=self.structure)
+
+    def dispatch(self, kf: Keyframe, frame: Frame, T_c_k: np.ndarray, rate, last_pose):
+        """The edge alignment of ``frame`` to ``kf`` from the start T_cur_kf, dispatched;
+        ``rate``: the frame's shutter rate (None: a global shutter), with ``last_pose`` (the
+        last frame's T_world_cam) as its previous one."""
+        shutter = None if rate is None else Shutter(
+            aligned_array(inverse_np(last_pose) @ kf.pose, np.float32), np.float32(rate))
+        return _track_jit(kf.edges, frame.dist, frame.edge_map, np.asarray(T_c_k, np.float32),
+                          self.intrinsics, config=self.structure, knobs=self.knobs,
+                          shutter=shutter)
+
+    def align(self, kf: Keyframe, frame: Frame, T_c_k: np.ndarray, rate, last_pose):
+        """``dispatch``, read back (host arrays)."""
+        return to_host(self.dispatch(kf, frame, T_c_k, rate, last_pose))
+
+
+def _aligner(solver: Solver, state: TrackerState, frame: Frame, timestamp: float):
+    """``align(kf, frame, T_cur_kf)`` and ``usable(solve)`` for the recovery's solves of a
+    frame at ``timestamp``, after the frames of ``state``."""
+    last = state.motion.poses[-1] if state.motion.poses else None
+
+    def align(kf, fr, T_c_k):
+        return solver.align(kf, fr, T_c_k, solver.rate(timestamp, fr, state.motion.times), last)
+
+    def usable(out) -> bool:
+        return lost_reason(frame.num_edges, out, solver.config) is None
+
+    return align, usable
+
+
+def search(solver: Solver, state: TrackerState, frame: Frame, ask: Search, timestamp: float,
+           predicted: np.ndarray, prior: np.ndarray | None) -> recovery.Found | None:
+    """The recovery search ``ask`` asks for (``recovery.search``) from the state's keyframes
+    (the current one, then the earlier ones, newest first) and last poses; with a motion
+    prior, the constant-velocity start as well."""
+    config = solver.config
+    align, usable = _aligner(solver, state, frame, timestamp)
+    starts = recovery.motion_starts(state.motion.poses, state.motion.times, timestamp)
+    if prior is not None:  # the first solve came from the prior: also try this
+        starts = [*starts, state.motion.predict()]
+    reference, doubt = ask.reference, config.doubt_share_ratio
+    return recovery.search(
+        frame, [state.keyframe, *reversed(state.previous)], first=ask.first,
+        predicted=predicted, starts=starts, align=align, usable=usable,
+        good_enough=None if reference is None else (lambda out: not under(out, reference, doubt)),
+        intrinsics=solver.intrinsics, config=config)
+
+
+def confirm(solver: Solver, state: TrackerState, frame: Frame, ask: Confirm,
+            timestamp: float) -> bool:
+    """Whether a feature start converges to the solve ``ask`` names (``recovery.confirm``)."""
+    align, usable = _aligner(solver, state, frame, timestamp)
+    return recovery.confirm(frame, ask.keyframe, ask.solve, align=align, usable=usable,
+                            intrinsics=solver.intrinsics, config=solver.config)
+
+
+def make_keyframe(solver: Solver, mapper: Mapper | None, frame: Frame, ask: MakeKeyframe,
+                  index: int) -> Made | None:
+    """Make ``frame`` the keyframe ``ask`` describes: select its edges (seeded by the keyframe's
+    number; prior motion: constant velocity, T_next_kf = T_w_kf^-1 T_w_prev), unroll them
+    for a rolling shutter (its own velocity to its middle row), hand it to ``mapper`` at frame
+    ``index`` and add the depth residual's points. None when it has too few usable edges."""
+    config, motion, pose = solver.config, ask.motion, ask.pose
+    t0 = time.perf_counter()
+    T_prior = inverse_np(pose) @ motion.poses[-1] if motion.poses else np.eye(4)
+    edges = keyframe_edges(frame, config, seed=config.seed + ask.id, T_prior=T_prior,
+                           intr=solver.intrinsics, reobs_a=solver.reobs_a)
+    twist = None  # its motion per row, with a rolling shutter
+    if solver.readout_s > 0:
+        twist = np.zeros(6)
+        if motion.poses:
+            rate = shutter_rate(solver.readout_s, frame.shape[0], ask.timestamp - motion.times[-1])
+            twist = rate * log_np(inverse_np(motion.poses[-1]) @ pose)
+            edges = unroll_edges(edges, twist, solver.intrinsics, frame.shape[0])
+    n = int(edges.valid.sum())
+    if n < config.min_inliers:
+        return None
+    t1 = time.perf_counter()
+    kf, mapped, map_ms = Keyframe(ask.id, ask.timestamp, pose, n, frame=frame), None, 0.0
+    if mapper is not None:
+        mapped = mapper.add(kf.id, pose, edges, frame, index, twist)
+        if mapped is not None:  # inline: refined already
+            kf = dataclasses.replace(kf, pose=mapped.pose)
+        map_ms = (time.perf_counter() - t1) * 1e3
+    if config.depth_residual and frame.depth is not None:
+        edges = edges._replace(**dict(zip(("depth_pts", "depth_normals"), depth_points(
+            frame.depth, solver.intrinsics, config.depth_points, min_depth=config.min_depth,
+            max_depth=config.max_depth, seed=config.seed + ask.id), strict=True)))
+    kf = dataclasses.replace(kf, edges=KeyframeEdges(*jax.tree.map(jnp.asarray, edges)))
+    return Made(kf, (t1 - t0) * 1e3, map_ms, mapped)
+
+
+def warm_up(solver: Solver, mapper: Mapper | None, kf: Keyframe, frame: Frame) -> float:
+    """At the first keyframe, before any frame is tracked: compile or load, and run once,
+    every program the run can need (the per-frame solve and the recovery's, for each slot
+    count a keyframe can have; the selection for each candidate buffer size; the window's
+    steps, on its worker), so that no frame waits for one. The keyframe's frame is solved
+    against itself and the result dropped. Returns its time (ms)."""
+    t0 = time.perf_counter()
+    warm_map = mapper.warm_up() if mapper is not None else None
+    config = solver.config
+    rel = (aligned_array(inverse_np(kf.pose) @ kf.pose, np.float32),) * 2
+    slots = selection.bucket_sizes(config) if config.selection == "all" \
+        else [kf.edges.valid.shape[0]]
+    for size in slots:
+        edges = kf.edges if size == kf.edges.valid.shape[0] else selection.empty_edges(
+            size)._replace(depth_pts=kf.edges.depth_pts, depth_normals=kf.edges.depth_normals)
+        rate = None if solver.readout_s <= 0 else np.float32(0.0)
+        kf_s = dataclasses.replace(kf, edges=edges)
+        jax.block_until_ready(solver.next(kf_s, frame, rel, rate))
+        solver.align(kf_s, frame, np.eye(4), rate, kf.pose)
+    h, w = frame.shape
+    selection.warm_up(config, intr=solver.intrinsics, width=w, height=h, reobs_a=solver.reobs_a)
+    if warm_map is not None:
+        warm_map.result()
+    return (time.perf_counter() - t0) * 1e3
+
