@@ -32,7 +32,7 @@ from ..camera import (
 )
 from ..io import read_trajectory
 from ..metrics import associate_timestamps
-from .source import UnknownCameraError
+from .base import UnknownCameraError
 
 __all__ = [
     "EmptyDepthWarning",
