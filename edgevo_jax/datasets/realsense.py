@@ -18,7 +18,7 @@ import numpy as np
 from ..camera import Camera, Distortion, Intrinsics
 from ..io import read_trajectory
 from .base import UnknownCameraError
-from .tum import source_camera, undistort
+from .calibration import source_camera, undistort
 
 #: frames of a live run when no count is given (stop earlier with Ctrl-C)
 UNBOUNDED = 10**9
