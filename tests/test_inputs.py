@@ -30,7 +30,8 @@ from edgevo_jax.camera import Intrinsics
 from edgevo_jax.cli import BUNDLED_CLIP
 from edgevo_jax.config import Config
 from edgevo_jax.datasets import read_file_list
-from edgevo_jax.datasets.tum import EmptyDepthWarning, TumSequence, _jpeg_header, load_sequence
+from edgevo_jax.datasets.images import _jpeg_header
+from edgevo_jax.datasets.tum import EmptyDepthWarning, TumSequence, load_sequence
 from edgevo_jax.io import TrajectoryWriter
 
 NAME = "rgbd_dataset_freiburg1_xyz_bad"  # the camera (freiburg1) comes from the name

@@ -4,16 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from .calibration import camera_from_name, read_calibration
 from .groundtruth import groundtruth_pose_at
 from .pingpong import pingpong, pingpong_indices
-from .tum import (
-    TumSequence,
-    camera_from_name,
-    load_sequence,
-    read_calibration,
-    read_file_list,
-    subsequence,
-)
+from .tum import TumSequence, load_sequence, read_file_list, subsequence
 
 #: the clip shipped in the package: the first 10 frames of TUM fr1/xyz (CC BY 4.0), the
 #: default sequence of ``edgevo run``; usable from any working directory

@@ -21,11 +21,11 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..camera import Camera, Intrinsics, checked_readout
+from ..camera import Camera, Distortion, Intrinsics, checked_readout
 from ..io import read_trajectory
 from ..metrics import associate_timestamps
-from .source import DEPTH_TOPIC, INFO_TOPIC, RGB_TOPIC, SourceError, UnknownCameraError
-from .tum import Distortion, camera_from_name, source_camera, undistort
+from .base import DEPTH_TOPIC, INFO_TOPIC, RGB_TOPIC, SourceError, UnknownCameraError
+from .calibration import camera_from_name, source_camera, undistort
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from .source import Source
+    from .base import Source
 
 __all__ = ["groundtruth_pose_at"]
 

@@ -17,8 +17,8 @@ import numpy as np
 
 from ..camera import Camera, Distortion, Intrinsics
 from ..io import read_trajectory
-from .source import UnknownCameraError
-from .tum import source_camera, undistort
+from .base import UnknownCameraError
+from .calibration import source_camera, undistort
 
 #: frames of a live run when no count is given (stop earlier with Ctrl-C)
 UNBOUNDED = 10**9

@@ -11,10 +11,8 @@ any folder holding one takes its camera from it (``read_calibration``).
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 import os
-import re
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,17 +20,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..camera import (
-    CAMERAS,
-    Camera,
-    Distortion,
-    Intrinsics,
-    camera_preset,
-    undistortion_maps,
-)
+from ..camera import Camera, Distortion, Intrinsics
 from ..io import read_trajectory
 from ..metrics import associate_timestamps
-from .source import UnknownCameraError
+from .calibration import (
+    CALIBRATION,
+    camera_from_name,
+    read_calibration,
+    source_camera,
+    undistort,
+)
+from .images import check_files, describe, read_image
 
 __all__ = [
     "EmptyDepthWarning",
@@ -51,8 +49,6 @@ SHARED_CLIPS = (
     "rgbd_dataset_freiburg1_desk_clip9",
 )
 SHARED_TUM = Path(__file__).resolve().parents[3] / "shared" / "data" / "tum"
-
-_CAMERA_RE = re.compile(r"freiburg([123])|(?<![a-z0-9])fr([123])(?![a-z0-9])")
 
 
 class EmptyDepthWarning(UserWarning):
@@ -96,199 +92,6 @@ def read_file_list(path: str | os.PathLike[str]) -> tuple[np.ndarray, list[str]]
             rest.append(" ".join(fields[1:]))
             linenos.append(lineno)
     return np.asarray(stamps, np.float64), rest
-
-
-CALIBRATION = "calibration.txt"
-
-
-def read_calibration(path: str | os.PathLike[str]) -> Camera:
-    """The camera of a calibration file: 4 numbers ``fx fy cx cy`` (ETH3D's
-    ``calibration.txt``: undistorted images) or 9, ``fx fy cx cy k1 k2 p1 p2 k3`` (OpenCV's
-    distortion of the raw images), on one line or several, separated by spaces or commas;
-    blank lines and '#' comments are skipped. The readout is 0 (a global shutter: set
-    ``Config.readout_s`` for a rolling one). FileNotFoundError, or ValueError naming the file
-    and what is wrong with it."""
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"calibration file not found: {p}")
-    fields = [v for ln in p.read_text(encoding="utf-8", errors="replace").splitlines()
-              if ln.strip() and not ln.lstrip().startswith("#")
-              for v in ln.replace(",", " ").split()]
-    if len(fields) not in (4, 9):
-        raise ValueError(f"{p}: expected 4 numbers (fx fy cx cy) or 9 (fx fy cx cy k1 k2 p1 p2 "
-                         f"k3), got {len(fields)}: {' '.join(fields)[:80]!r}")
-    try:
-        values = [float(v) for v in fields]
-    except ValueError:
-        raise ValueError(f"{p}: 'fx fy cx cy [k1 k2 p1 p2 k3]' must be numbers, got "
-                         f"{' '.join(fields)!r}") from None
-    try:
-        return Camera(Intrinsics(*values[:4]), tuple(values[4:]) or None).validate()
-    except ValueError as err:
-        raise ValueError(f"{p}: {err}") from None
-
-
-def camera_from_name(name: str) -> Camera:
-    """The TUM benchmark camera a folder (or bag) name names: ``freiburgN`` or ``frN`` picks
-    preset ``frN`` of ``camera.CAMERAS``. UnknownCameraError if no (or more than one) camera
-    is named."""
-    found = {a or b for a, b in _CAMERA_RE.findall(name.lower())}
-    if len(found) != 1:
-        what = "no Freiburg camera" if not found else f"several cameras ({sorted(found)})"
-        raise UnknownCameraError(
-            f"cannot tell the camera from the name {name!r}: {what} named (expected "
-            "'freiburg1/2/3' or 'fr1/2/3')")
-    return CAMERAS[f"fr{found.pop()}"].camera
-
-
-@functools.lru_cache(maxsize=8)
-def _cached_maps(
-    intr: Intrinsics, dist: Distortion, width: int, height: int
-) -> tuple[np.ndarray, np.ndarray]:
-    map1, map2 = undistortion_maps(intr, dist, width, height)
-    map1.setflags(write=False)
-    map2.setflags(write=False)
-    return map1, map2
-
-
-def undistort(rgb: np.ndarray, depth: np.ndarray, intr: Intrinsics,
-              distortion: Distortion | None) -> tuple[np.ndarray, np.ndarray]:
-    """rgb (bilinear) and depth (nearest neighbour: no depth values blended) remapped onto
-    the pinhole ``intr`` from a camera with OpenCV ``distortion`` (None: as they are)."""
-    if distortion is None:
-        return rgb, depth
-    h, w = depth.shape
-    map1, map2 = _cached_maps(intr, tuple(distortion), w, h)
-    return (cv2.remap(rgb, map1, map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                      borderValue=0),
-            cv2.remap(depth, map1, map2, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
-                      borderValue=0))
-
-
-def _read_image(path: Path, flags: int, what: str) -> np.ndarray:
-    if not path.is_file():
-        raise FileNotFoundError(f"{what} image not found: {path}")
-    buf = np.fromfile(path, np.uint8)
-    if path.suffix.lower() in _JPEG_SUFFIXES and _JPEG_END not in buf[-64:].tobytes():
-        raise ValueError(f"cannot decode {what} image {path}: truncated JPEG (no end-of-image "
-                         f"marker FF D9 at the end of its {buf.size} bytes)")
-    img = cv2.imdecode(buf, flags) if buf.size else None
-    if img is None:
-        raise ValueError(f"cannot decode {what} image {path} (corrupt or truncated file?)")
-    return img
-
-
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-_PNG_END = b"IEND\xaeB`\x82"  # the IEND chunk type and its CRC: the last bytes of a whole PNG
-# PNG colour type -> (what cv2.IMREAD_UNCHANGED makes of it)
-_PNG_COLOUR = {0: "1 channel", 2: "3 channels", 3: "palette colour", 4: "gray + alpha",
-               6: "4 channels"}
-
-
-def _png_header(path: Path, what: str) -> tuple[int, int, str] | None:
-    """(width, height, description) from a PNG's header, checking that the file is a whole
-    PNG (signature, IHDR, IEND at the end) without decoding it; None for a non-PNG name."""
-    if path.suffix.lower() != ".png":
-        return None
-    size = path.stat().st_size
-    with path.open("rb") as f:
-        head = f.read(26)
-        f.seek(max(size - 64, 0))
-        tail = f.read()
-    if len(head) < 26 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
-        raise ValueError(f"cannot decode {what} image {path}: not a PNG file ({size} bytes; "
-                         "corrupt?)")
-    if _PNG_END not in tail:
-        raise ValueError(f"cannot decode {what} image {path}: truncated PNG (no IEND chunk at "
-                         f"the end of its {size} bytes)")
-    width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
-    bits = "16-bit" if head[24] == 16 else "8-bit"
-    return width, height, f"{bits}, {_PNG_COLOUR.get(head[25], f'colour type {head[25]}')}"
-
-
-_JPEG_SUFFIXES = (".jpg", ".jpeg")
-_JPEG_END = b"\xff\xd9"  # EOI: the last marker of a whole JPEG
-# start-of-frame markers (baseline, progressive, lossless, arithmetic): they hold the size
-_JPEG_SOF = frozenset({0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE,
-                       0xCF})
-
-
-def _jpeg_header(path: Path, what: str) -> tuple[int, int, str] | None:
-    """(width, height, description) from a JPEG's frame header, checking that the file is a
-    whole JPEG (SOI at the start, EOI at the end) without decoding it; None for a non-JPEG
-    name."""
-    if path.suffix.lower() not in _JPEG_SUFFIXES:
-        return None
-    size = path.stat().st_size
-    with path.open("rb") as f:
-        if f.read(3) != b"\xff\xd8\xff":
-            raise ValueError(f"cannot decode {what} image {path}: not a JPEG file ({size} "
-                             "bytes; corrupt?)")
-        f.seek(max(size - 64, 0))
-        if _JPEG_END not in f.read():
-            raise ValueError(f"cannot decode {what} image {path}: truncated JPEG (no "
-                             f"end-of-image marker FF D9 at the end of its {size} bytes)")
-        f.seek(2)
-        while True:  # segments: FF, marker, 2-byte length (counting itself), body
-            head = f.read(4)
-            while len(head) == 4 and head[1] == 0xFF:  # fill bytes before a marker
-                head = head[1:] + f.read(1)
-            if len(head) < 4 or head[0] != 0xFF or head[1] in (0xD9, 0xDA):
-                raise ValueError(f"cannot decode {what} image {path}: corrupt JPEG (no frame "
-                                 "header before its image data)")
-            if head[1] in _JPEG_SOF:
-                body = f.read(6)  # precision, height, width, components
-                if len(body) < 6:
-                    break
-                channels = body[5]
-                return (int.from_bytes(body[3:5], "big"), int.from_bytes(body[1:3], "big"),
-                        f"{body[0]}-bit, {channels} channel{'s' if channels != 1 else ''}")
-            f.seek(int.from_bytes(head[2:4], "big") - 2, os.SEEK_CUR)
-    raise ValueError(f"cannot decode {what} image {path}: corrupt JPEG (frame header cut "
-                     "short)")
-
-
-def _check_files(rgb_files: tuple[Path, ...], depth_files: tuple[Path, ...]) -> None:
-    """Every associated image present, a whole PNG or JPEG (other formats: present), the same
-    size, depth 16-bit single channel: read from the files' headers and ends only (no
-    decoding), so a bad file deep in a long sequence is reported before tracking starts."""
-    for what, files in (("rgb", rgb_files), ("depth", depth_files)):
-        missing = [f for f in files if not f.is_file()]
-        if missing:
-            more = f" (and {len(missing) - 1} more of its {len(files)} {what} images)"
-            raise FileNotFoundError(
-                f"{what} image not found: {missing[0]}" + (more if len(missing) > 1 else "")
-            )
-    size = None
-    for rgb_path, depth_path in zip(rgb_files, depth_files, strict=True):
-        rgb = _png_header(rgb_path, "rgb") or _jpeg_header(rgb_path, "rgb")
-        depth = _png_header(depth_path, "depth") or _jpeg_header(depth_path, "depth")
-        if depth is not None and depth[2] != "16-bit, 1 channel":
-            raise ValueError(
-                f"depth image {depth_path} must be single-channel 16-bit, got {depth[2]}"
-            )
-        if rgb is not None and depth is not None and rgb[:2] != depth[:2]:
-            raise ValueError(
-                f"rgb {rgb_path} is {rgb[0]}x{rgb[1]} but depth {depth_path} is "
-                f"{depth[0]}x{depth[1]} (width x height)"
-            )
-        here = rgb or depth
-        if here is not None:
-            if size is None:
-                size = (here[:2], rgb_path if rgb is not None else depth_path)
-            elif here[:2] != size[0]:
-                raise ValueError(
-                    f"frame {rgb_path} is {here[0]}x{here[1]}, the sequence (from "
-                    f"{size[1]}) is {size[0][0]}x{size[0][1]} (width x height)"
-                )
-
-
-def _describe(img: np.ndarray) -> str:
-    bits = {np.dtype(np.uint8): "8-bit", np.dtype(np.uint16): "16-bit"}.get(
-        img.dtype, f"dtype {img.dtype}"
-    )
-    channels = 1 if img.ndim == 2 else img.shape[2]
-    return f"{bits}, {channels} channel{'s' if channels != 1 else ''}"
 
 
 def empty_depth_note(raw: np.ndarray, path: str | os.PathLike[str]) -> str | None:
@@ -347,11 +150,11 @@ class TumSequence:
         if not -n <= i < n:
             raise IndexError(f"frame {i} out of range for {self.name} ({n} frames)")
         rgb_path, depth_path = self.rgb_files[i], self.depth_files[i]
-        bgr = _read_image(rgb_path, cv2.IMREAD_COLOR, "rgb")
-        raw = _read_image(depth_path, cv2.IMREAD_UNCHANGED, "depth")
+        bgr = read_image(rgb_path, cv2.IMREAD_COLOR, "rgb")
+        raw = read_image(depth_path, cv2.IMREAD_UNCHANGED, "depth")
         if raw.ndim != 2 or raw.dtype != np.uint16:
             raise ValueError(
-                f"depth image {depth_path} must be single-channel 16-bit, got {_describe(raw)}"
+                f"depth image {depth_path} must be single-channel 16-bit, got {describe(raw)}"
             )
         if bgr.shape[:2] != raw.shape:
             raise ValueError(
@@ -395,28 +198,6 @@ def subsequence(seq: TumSequence, start: int, stop: int, *, step: int = 1) -> Tu
         seq, name=name, timestamps=seq.timestamps[part],
         rgb_files=seq.rgb_files[part], depth_files=seq.depth_files[part],
         depth_timestamps=None if seq.depth_timestamps is None else seq.depth_timestamps[part])
-
-
-def source_camera(*, camera: Camera | str | None,
-                  intrinsics: Intrinsics | None) -> Camera | None:
-    """The camera a reader was given, checked: ``camera`` (a ``Camera`` or a preset name of
-    ``camera.CAMERAS``), else ``intrinsics`` as a pinhole camera (no distortion, readout 0);
-    None when neither is given. ValueError naming the argument: both given, an unknown
-    preset, a bad value."""
-    if camera is not None and intrinsics is not None:
-        raise ValueError("pass camera= or intrinsics=, not both (a Camera holds intrinsics)")
-    if camera is None and intrinsics is None:
-        return None
-    if isinstance(camera, str):
-        cam = camera_preset(camera)
-    elif camera is not None:
-        if not isinstance(camera, Camera):
-            raise ValueError(f"camera= must be a Camera or a preset name "
-                             f"({', '.join(CAMERAS)}), got {type(camera).__name__}")
-        cam = camera
-    else:
-        cam = Camera(intrinsics)  # type: ignore[arg-type]
-    return cam.validate()
 
 
 def load_sequence(
@@ -503,8 +284,8 @@ def load_sequence(
                 f"ground truth {err} (fix it, or remove {gt_path.name} to run without ATE)"
             ) from None
     if check_images:
-        _check_files(rgb_files, depth_files)
-    first = _read_image(rgb_files[0], cv2.IMREAD_COLOR, "rgb")
+        check_files(rgb_files, depth_files)
+    first = read_image(rgb_files[0], cv2.IMREAD_COLOR, "rgb")
     seq = TumSequence(
         root=root,
         name=name,
