@@ -16,7 +16,8 @@ PKG = Path(__file__).resolve().parents[1] / "edgevo_jax"
 #: top to bottom: each part may import only from parts after it
 LAYERS = ["cli", "__init__", "viz", "pipeline", "learn", "backend", "frontend", "image",
           "datasets", "derive", "solvers", "metrics", "io", "geometry", "_quaternion",
-          "camera_file", "depth_registration", "camera", "config", "programs", "determinism", "hostmem", "provenance"]
+          "camera_file", "depth_registration", "camera", "config",
+          "programs", "determinism", "hostmem", "provenance"]
 
 
 def _part(module: list[str]) -> str:
