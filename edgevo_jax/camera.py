@@ -108,16 +108,32 @@ class Camera(NamedTuple):
     removes (``undistortion_maps``) before tracking; ``readout_s``, the rolling shutter's
     readout time in seconds (0: a global shutter; ``Config.readout_s`` None takes it).
 
+    And how its depth images relate to it: ``depth_scale``, the factor metric depth (the
+    file's value / depth_factor) is multiplied by (true z = scale * z read);
+    ``depth_time_offset_s``, seconds added to the depth timestamps before rgb and depth are
+    associated (t_depth_true = t_depth_file + offset); ``T_color_depth``, the depth camera's
+    pose in the colour camera (4x4 rigid, metres: p_color = T p_depth), the depth image being
+    taken as seen by a camera with the colour camera's intrinsics and size at that pose (a
+    residual pose of a nearly registered sensor); None: depth is registered to the colour
+    camera already. The defaults (1, 0, None) apply nothing. Sources that cannot apply a
+    non-default one refuse it (``depth_fields``). Equality with a ``T_color_depth`` set
+    compares arrays: compare the fields instead.
+
     Device code takes the 4 numbers of ``intrinsics`` only (an ``Intrinsics`` pytree); the
-    distortion never leaves the host."""
+    distortion and the depth fields never leave the host."""
 
     intrinsics: Intrinsics
     distortion: Distortion | None = None
     readout_s: float = 0.0
+    depth_scale: float = 1.0
+    depth_time_offset_s: float = 0.0
+    T_color_depth: np.ndarray | None = None
 
     def validate(self, *, width: int | None = None, height: int | None = None) -> Camera:
         """The camera with float values, or ValueError: intrinsics as ``Intrinsics.validate``,
-        distortion of 4, 5, 8, 12 or 14 finite coefficients, readout finite and >= 0."""
+        distortion of 4, 5, 8, 12 or 14 finite coefficients, readout finite and >= 0, depth
+        scale finite and > 0, depth time offset finite, ``T_color_depth`` None or a 4x4
+        rigid transform (``checked_pose``; then a read-only float64 array)."""
         intr = Intrinsics(*(float(v) for v in self.intrinsics)).validate(width=width,
                                                                          height=height)
         dist = None
@@ -126,7 +142,45 @@ class Camera(NamedTuple):
             if len(dist) not in DISTORTION_LENGTHS or not all(math.isfinite(v) for v in dist):
                 raise ValueError("distortion must be 4, 5, 8, 12 or 14 finite OpenCV "
                                  f"coefficients (k1 k2 p1 p2 [k3 ...]), got {dist}")
-        return Camera(intr, dist, checked_readout(self.readout_s))
+        scale = float(self.depth_scale)
+        if not (math.isfinite(scale) and scale > 0):
+            raise ValueError(f"depth_scale must be finite and > 0 (true depth = scale * depth "
+                             f"read), got {self.depth_scale}")
+        offset = float(self.depth_time_offset_s)
+        if not math.isfinite(offset):
+            raise ValueError(f"depth_time_offset_s must be finite, got "
+                             f"{self.depth_time_offset_s}")
+        pose = self.T_color_depth
+        if pose is not None:
+            pose = checked_pose(pose, "T_color_depth")
+            pose.setflags(write=False)
+        return Camera(intr, dist, checked_readout(self.readout_s), scale, offset, pose)
+
+    def depth_fields(self) -> list[str]:
+        """The names of the depth fields that differ from their defaults (``depth_scale`` 1,
+        ``depth_time_offset_s`` 0, ``T_color_depth`` None): what a source must apply."""
+        return [name for name, off in (("depth_scale", self.depth_scale != 1.0),
+                                       ("depth_time_offset_s", self.depth_time_offset_s != 0.0),
+                                       ("T_color_depth", self.T_color_depth is not None))
+                if off]
+
+
+def checked_pose(T: np.ndarray, name: str) -> np.ndarray:
+    """``T`` as a new float64 4x4 rigid transform, or ValueError naming ``name`` and what is
+    wrong: not 4x4, not finite, a last row other than [0, 0, 0, 1], or a rotation block that
+    is not orthonormal with determinant +1 (tolerance 1e-6)."""
+    M = np.array(T, np.float64)
+    if M.shape != (4, 4):
+        raise ValueError(f"{name} must be a 4x4 matrix, got shape {M.shape}")
+    if not np.all(np.isfinite(M)):
+        raise ValueError(f"{name} must be finite, got {M.tolist()}")
+    if not np.allclose(M[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
+        raise ValueError(f"{name}: the last row must be [0, 0, 0, 1], got {M[3].tolist()}")
+    R = M[:3, :3]
+    if not (np.allclose(R @ R.T, np.eye(3), atol=1e-6) and abs(np.linalg.det(R) - 1) < 1e-6):
+        raise ValueError(f"{name}: the 3x3 block must be a rotation (orthonormal, det +1), "
+                         f"got {R.tolist()}")
+    return M
 
 
 def checked_readout(readout_s: float) -> float:

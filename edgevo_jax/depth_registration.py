@@ -10,27 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .camera import Intrinsics
+from .camera import Intrinsics, checked_pose
 
-__all__ = ["check_rigid", "register_depth"]
-
-
-def check_rigid(T: np.ndarray, name: str = "T_color_depth") -> np.ndarray:
-    """``T`` as a float64 4x4 rigid transform, or ValueError naming ``name`` and what is
-    wrong: not 4x4, not finite, a last row other than [0, 0, 0, 1], or a rotation block that
-    is not orthonormal with determinant +1 (tolerance 1e-6)."""
-    M = np.asarray(T, np.float64)
-    if M.shape != (4, 4):
-        raise ValueError(f"{name} must be a 4x4 matrix, got shape {M.shape}")
-    if not np.all(np.isfinite(M)):
-        raise ValueError(f"{name} must be finite, got {M.tolist()}")
-    if not np.allclose(M[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
-        raise ValueError(f"{name}: the last row must be [0, 0, 0, 1], got {M[3].tolist()}")
-    R = M[:3, :3]
-    if not (np.allclose(R @ R.T, np.eye(3), atol=1e-6) and abs(np.linalg.det(R) - 1) < 1e-6):
-        raise ValueError(f"{name}: the 3x3 block must be a rotation (orthonormal, det +1), "
-                         f"got {R.tolist()}")
-    return M
+__all__ = ["register_depth"]
 
 
 def register_depth(
@@ -55,7 +37,7 @@ def register_depth(
     d = np.asarray(depth)
     if d.ndim != 2:
         raise ValueError(f"depth must be a 2-D (H, W) array, got shape {d.shape}")
-    M = check_rigid(T_color_depth)
+    M = checked_pose(T_color_depth, "T_color_depth")
     height, width = d.shape if shape is None else (int(shape[0]), int(shape[1]))
     out = np.zeros((height, width), np.float32)
     v, u = np.nonzero(np.isfinite(d) & (d > 0))

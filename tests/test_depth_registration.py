@@ -7,9 +7,9 @@ import cv2
 import numpy as np
 import pytest
 
-from edgevo_jax.camera import CAMERAS, Intrinsics
+from edgevo_jax.camera import CAMERAS, Intrinsics, checked_pose
 from edgevo_jax.cli import BUNDLED_CLIP
-from edgevo_jax.depth_registration import check_rigid, register_depth
+from edgevo_jax.depth_registration import register_depth
 
 K = Intrinsics(500.0, 500.0, 39.5, 29.5)
 
@@ -87,7 +87,7 @@ def test_round_trip_on_a_real_frame_recovers_most_pixels_within_a_millimetre():
 ])
 def test_not_rigid_is_refused(T, why):
     with pytest.raises(ValueError, match=why):
-        check_rigid(T)
+        checked_pose(T, "T_color_depth")
     with pytest.raises(ValueError, match="T_color_depth"):
         register_depth(np.ones((4, 4)), K, K, T)
 

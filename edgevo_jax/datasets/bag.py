@@ -25,7 +25,7 @@ from ..camera import Camera, Distortion, Intrinsics, checked_readout
 from ..io import read_trajectory
 from ..metrics import associate_timestamps
 from .base import DEPTH_TOPIC, INFO_TOPIC, RGB_TOPIC, SourceError, UnknownCameraError
-from .calibration import camera_from_name, source_camera, undistort
+from .calibration import camera_from_name, refuse_depth_fields, source_camera, undistort
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
@@ -223,6 +223,7 @@ def load_bag(
             raise FileNotFoundError(f"ground-truth file not found: {groundtruth}")
         gt = read_trajectory(groundtruth)
     given = source_camera(camera=camera, intrinsics=intrinsics)
+    refuse_depth_fields(given, "a ROS bag")
     if readout_s is None:
         readout_s = given.readout_s if camera is not None else _readout_named(root.name)
     seq = BagSequence(root=root, name=root.stem if root.is_file() else root.name,

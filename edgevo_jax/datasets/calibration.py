@@ -22,12 +22,14 @@ from ..camera import (
     camera_preset,
     undistortion_maps,
 )
+from ..camera_file import read_camera_toml
 from .base import UnknownCameraError
 
 __all__ = [
     "CALIBRATION",
     "camera_from_name",
     "read_calibration",
+    "refuse_depth_fields",
     "source_camera",
     "undistort",
 ]
@@ -43,9 +45,12 @@ def read_calibration(path: str | os.PathLike[str]) -> Camera:
     ``calibration.txt``: undistorted images) or 9, ``fx fy cx cy k1 k2 p1 p2 k3`` (OpenCV's
     distortion of the raw images), on one line or several, separated by spaces or commas;
     blank lines and '#' comments are skipped. The readout is 0 (a global shutter: set
-    ``Config.readout_s`` for a rolling one). FileNotFoundError, or ValueError naming the file
-    and what is wrong with it."""
+    ``Config.readout_s`` for a rolling one). A path ending in ``.toml`` is a camera file
+    (``camera_file.read_camera_toml``, docs/camera_file.md: readout and depth fields too).
+    FileNotFoundError, or ValueError naming the file and what is wrong with it."""
     p = Path(path)
+    if p.suffix.lower() == ".toml":
+        return read_camera_toml(p)
     if not p.is_file():
         raise FileNotFoundError(f"calibration file not found: {p}")
     fields = [v for ln in p.read_text(encoding="utf-8", errors="replace").splitlines()
@@ -63,6 +68,16 @@ def read_calibration(path: str | os.PathLike[str]) -> Camera:
         return Camera(Intrinsics(*values[:4]), tuple(values[4:]) or None).validate()
     except ValueError as err:
         raise ValueError(f"{p}: {err}") from None
+
+
+def refuse_depth_fields(camera: Camera | None, source: str) -> None:
+    """ValueError when ``camera`` sets a depth field (``Camera.depth_fields``) that the
+    ``source`` (its kind, for the message) cannot apply; TUM folders apply them all."""
+    fields = [] if camera is None else camera.depth_fields()
+    if fields:
+        raise ValueError(f"{source} cannot apply the camera's {', '.join(fields)}; only TUM "
+                         "sequence folders apply depth_scale, depth_time_offset_s and "
+                         "T_color_depth (leave them at 1, 0 and none here)")
 
 
 def camera_from_name(name: str) -> Camera:

@@ -18,7 +18,7 @@ import numpy as np
 from ..camera import Camera, Distortion, Intrinsics
 from ..io import read_trajectory
 from .base import UnknownCameraError
-from .calibration import source_camera, undistort
+from .calibration import refuse_depth_fields, source_camera, undistort
 
 #: frames of a live run when no count is given (stop earlier with Ctrl-C)
 UNBOUNDED = 10**9
@@ -108,6 +108,7 @@ def open_realsense(
     (UnknownCameraError; the D400 colour streams report none). ``rs``: the pyrealsense2
     module (tests pass a replay)."""
     given = source_camera(camera=camera, intrinsics=intrinsics)
+    refuse_depth_fields(given, "a RealSense camera")
     rs = _pyrealsense2() if rs is None else rs
     config = rs.config()
     if serial:

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from ..camera import Camera, Distortion, Intrinsics
+from ..depth_registration import register_depth
 from ..io import read_trajectory
 from ..metrics import associate_timestamps
 from .calibration import (
@@ -109,9 +110,11 @@ class TumSequence:
     """An associated TUM RGB-D sequence (use :func:`load_sequence`).
 
     ``timestamps`` are the rgb timestamps of the associated rgb/depth pairs,
-    ``depth_timestamps`` their depth images'; ``groundtruth`` is (timestamps, poses7) or
-    None; ``readout_s`` the colour camera's rolling-shutter readout time (s, 0: a global
-    shutter). Equality is identity (fields hold arrays).
+    ``depth_timestamps`` their depth images' (depth.txt's plus ``depth_time_offset_s``: the
+    times the association used); ``groundtruth`` is (timestamps, poses7) or None;
+    ``readout_s`` the colour camera's rolling-shutter readout time (s, 0: a global shutter);
+    ``depth_scale`` and ``T_color_depth`` the camera's (``camera.Camera``), applied by
+    ``rectify_frame``. Equality is identity (fields hold arrays).
     """
 
     root: Path
@@ -127,6 +130,9 @@ class TumSequence:
     height: int
     depth_timestamps: np.ndarray | None = None
     readout_s: float = 0.0
+    depth_scale: float = 1.0
+    depth_time_offset_s: float = 0.0
+    T_color_depth: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.rgb_files)
@@ -172,9 +178,16 @@ class TumSequence:
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), raw
 
     def rectify_frame(self, rgb: np.ndarray, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Undistort a decoded frame (when ``distortion`` is set) and scale depth to metres."""
+        """Undistort a decoded frame (when ``distortion`` is set) and scale depth to metres:
+        raw / ``depth_factor`` * ``depth_scale``, then, when ``T_color_depth`` is set,
+        re-rendered into the colour camera (``register_depth``, the depth image taken to have
+        the colour camera's intrinsics: pixels nothing lands on become 0)."""
         rgb, raw = undistort(rgb, raw, self.intrinsics, self.distortion)
         depth = raw.astype(np.float32) / np.float32(self.depth_factor)
+        if self.depth_scale != 1.0:
+            depth *= np.float32(self.depth_scale)
+        if self.T_color_depth is not None:
+            depth = register_depth(depth, self.intrinsics, self.intrinsics, self.T_color_depth)
         return rgb, depth
 
 
@@ -225,8 +238,10 @@ def load_sequence(
     (``read_calibration``; ETH3D's cameras have global shutters: readout 0); else the camera
     the folder name names (``camera_from_name``: freiburg1/2/3 or fr1/2/3), else
     UnknownCameraError (a ValueError). ``readout_s`` (s), when given, replaces the camera's
-    readout. Ground truth is read when ``groundtruth.txt`` exists (None otherwise: runs go on
-    without ATE).
+    readout. The camera's depth fields are applied: ``depth_time_offset_s`` is added to
+    depth.txt's timestamps before they are associated with rgb.txt's, ``depth_scale`` and
+    ``T_color_depth`` to every frame (``TumSequence.rectify_frame``). Ground truth is read
+    when ``groundtruth.txt`` exists (None otherwise: runs go on without ATE).
 
     Everything that can be checked without tracking is checked here, so that a bad input stops
     the run before any JAX code: FileNotFoundError for a missing folder, list or image;
@@ -262,6 +277,8 @@ def load_sequence(
         raise ValueError(f"frame_step must be a positive integer, got {frame_step!r}")
     rgb_t, rgb_rel = read_file_list(root / "rgb.txt")
     depth_t, depth_rel = read_file_list(root / "depth.txt")
+    if cam.depth_time_offset_s != 0.0:
+        depth_t = depth_t + cam.depth_time_offset_s
     if frame_step > 1:
         rgb_t, rgb_rel = rgb_t[::frame_step], rgb_rel[::frame_step]
         depth_t, depth_rel = depth_t[::frame_step], depth_rel[::frame_step]
@@ -300,6 +317,9 @@ def load_sequence(
         height=int(first.shape[0]),
         depth_timestamps=depth_t[pairs[:, 1]],
         readout_s=cam.readout_s,
+        depth_scale=cam.depth_scale,
+        depth_time_offset_s=cam.depth_time_offset_s,
+        T_color_depth=cam.T_color_depth,
     )
     if not from_name:  # (a name's Freiburg camera fits the benchmark's 640x480)
         cam.intrinsics.validate(width=seq.width, height=seq.height)
