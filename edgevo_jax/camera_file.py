@@ -152,7 +152,8 @@ def _parse(data: dict[str, Any]) -> CameraFile:
             raise ValueError(msg)
     uncertainty: dict[str, float | tuple[float, ...]] = {}
     for k, v in tables["uncertainty"].items():
-        val = (_numbers("uncertainty.", k, v, None) if k in _VECTOR
+        n = len(dist) if k == "distortion" and dist is not None else _VECTOR.get(k)
+        val = (_numbers("uncertainty.", k, v, n) if k in _VECTOR
                else (_number("uncertainty.", k, v),))
         if not all(math.isfinite(x) and x >= 0 for x in val):
             raise ValueError(f"uncertainty.{k} must be finite and >= 0 (a 1-sigma), got {v!r}")

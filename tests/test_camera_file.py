@@ -117,6 +117,10 @@ def test_the_documented_example_reads(tmp_path):
      "translation_m = [0, 0, 0]\n", "depth_pose.rotation_deg must have 3 numbers"),
     ("fx = 1\nfy = 1\ncx = 1\ncy = 1\n[uncertainty]\nfx = -1\n", "uncertainty.fx must be"),
     ("fx = 1\nfy = 1\ncx = 1\ncy = 1\n[not_observable]\nfx = 1\n", "the reason"),
+    ("fx = 1\nfy = 1\ncx = 1\ncy = 1\n[uncertainty]\ntranslation_m = [0.1]\n",
+     "uncertainty.translation_m must have 3 numbers"),
+    ("fx = 1\nfy = 1\ncx = 1\ncy = 1\ndistortion = [0, 0, 0, 0]\n[uncertainty]\n"
+     "distortion = [0.1, 0.1, 0.1, 0.1, 0.1]\n", "uncertainty.distortion must have 4 numbers"),
     ("fx = 1\nfy = 1\ncx = 1\ncy = 1\nsource = 3\n", r"source must be a table"),
     ("fx = 1 fy = 2\n", "not a TOML camera file"),
 ])
