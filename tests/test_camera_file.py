@@ -23,6 +23,7 @@ from edgevo_jax.camera_file import (
 from edgevo_jax.cli import BUNDLED_CLIP
 from edgevo_jax.datasets import load_sequence, read_calibration
 from edgevo_jax.datasets.bag import load_bag
+from edgevo_jax.datasets.realsense import open_realsense
 from edgevo_jax.datasets.tum import read_file_list
 from edgevo_jax.depth_registration import register_depth
 
@@ -195,6 +196,9 @@ def test_bags_refuse_depth_fields(tmp_path):
     with pytest.raises(ValueError, match=r"a ROS bag cannot apply the camera's depth_scale, "
                                          r"T_color_depth; only TUM sequence folders"):
         load_bag(bag, camera=FR1._replace(depth_scale=1.1, T_color_depth=np.eye(4)))
+    with pytest.raises(ValueError, match=r"a RealSense camera cannot apply the camera's "
+                                         r"depth_time_offset_s"):
+        open_realsense(camera=FR1._replace(depth_time_offset_s=0.01), rs=object())
 
 
 class _Stop(Exception):
