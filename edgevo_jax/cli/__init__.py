@@ -1,0 +1,55 @@
+"""The ``edgevo`` command: ``edgevo run`` tracks a TUM sequence, ``edgevo batch`` tracks many
+sequences under many configurations at once, ``edgevo eval`` scores a trajectory,
+``edgevo plot`` draws figures (trajectory, frame, selection, configs; see ``edgevo_jax.viz``)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+STARTED = time.perf_counter()  # the command's start (the start-up it reports counts from it)
+
+from ..datasets import BUNDLED_CLIP  # noqa: E402  (re-exported: tests, notebooks)
+from . import batch, plot, run  # noqa: E402
+from . import eval as eval_  # noqa: E402
+from .eval import ALIGN_CHOICES, DELTA_UNIT_CHOICES  # noqa: E402
+
+# One module per subcommand (run, batch, eval, plot), each with add_parser(sub) and
+# command(args); this module assembles the parser and turns errors into exit codes.
+# Heavy imports (JAX, OpenCV, the pipeline) wait inside the commands, so that
+# `edgevo --help` and argument errors are quick.
+
+__all__ = ["ALIGN_CHOICES", "BUNDLED_CLIP", "DELTA_UNIT_CHOICES", "STARTED", "main"]
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="edgevo", description="Edge-based RGB-D visual odometry (EdgeVO) in JAX."
+    )
+    sub = p.add_subparsers(dest="command", required=True)
+    for module in (run, batch, eval_, plot):  # the order `edgevo --help` lists
+        module.add_parser(sub)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``edgevo`` console script."""
+    args = _parser().parse_args(argv)
+    if args.command in ("run", "batch"):
+        from ..determinism import enable_batch_exact
+
+        enable_batch_exact()  # a run's trajectory equals its trajectory in any batch
+    try:
+        if args.command == "run":
+            return run.command(args)
+        if args.command == "plot":
+            return plot.command(args)
+        if args.command == "batch":
+            return batch.command(args)
+        return eval_.command(args)
+    except (FileNotFoundError, ValueError, ImportError) as err:
+        print(f"edgevo: error: {err}", file=sys.stderr)
+        for note in getattr(err, "__notes__", []):  # where a run stopped, what it kept
+            print(f"edgevo: {note}", file=sys.stderr)
+        return 2
