@@ -141,8 +141,7 @@ def main(argv: list[str] | None = None) -> int:
             cli_args += ["--max-frames", str(args.max_frames)]
         if args.set:
             cli_args += ["--set", *args.set]
-        cli.STARTED = started
-        if cli.main(cli_args) != 0:
+        if cli.main(cli_args, started=started) != 0:
             return 1
         stats = json.loads(stats_path.read_text())
         run_stats = {k: stats[k] for k in ("startup_s", "warm_up_s", "frames")}

@@ -33,9 +33,11 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``edgevo`` console script."""
+def main(argv: list[str] | None = None, *, started: float | None = None) -> int:
+    """Entry point of the ``edgevo`` console script; ``started``: the ``time.perf_counter()``
+    the reported start-up counts from (None: when this module was imported)."""
     args = _parser().parse_args(argv)
+    args.started = STARTED if started is None else started
     if args.command in ("run", "batch"):
         from ..determinism import enable_batch_exact
 

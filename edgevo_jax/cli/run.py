@@ -101,7 +101,6 @@ def command(args: argparse.Namespace) -> int:
     from ..config import Config
     from ..datasets.source import SourceError, open_source
     from ..pipeline.run import run_sequence, summarise
-    from . import STARTED  # at call time: a caller may set edgevo_jax.cli.STARTED
 
     config = Config().with_overrides(args.overrides)
     params = _read_params(args.params, config) if args.params is not None else None
@@ -121,7 +120,7 @@ def command(args: argparse.Namespace) -> int:
     out = args.out if args.out is not None else Path(f"{seq.name}.traj.txt")
     try:
         run = run_sequence(seq, config, out=out, progress=not args.no_progress,
-                           max_frames=args.max_frames, params=params, started=STARTED,
+                           max_frames=args.max_frames, params=params, started=args.started,
                            on_frame=recording)
     except KeyboardInterrupt as err:
         notes = getattr(err, "__notes__", [])
