@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import tempfile
 from pathlib import Path
 from types import TracebackType
 from typing import IO, Self
@@ -112,19 +113,56 @@ def write_trajectory(
     os.replace(part, out)
 
 
+def check_output(path: str | os.PathLike[str], *, what: str = "output",
+                 folder: bool = False) -> Path:
+    """``path`` as a Path when it can be written, before anything is computed; ValueError
+    naming ``what`` and the problem otherwise: a file path that is a folder (or a folder path
+    that is a file), a file whose folder does not exist, or a place the process cannot write
+    (checked by creating and removing a temporary file there: permission bits alone do not
+    say, e.g. for root or a read-only file system). A folder that does not exist yet is
+    checked at its nearest existing parent. Writes nothing."""
+    path = Path(path)
+    if folder:
+        if path.exists() and not path.is_dir():
+            raise ValueError(f"{what} {path}: is a file, not a folder")
+        place = path
+        while not place.exists():
+            place = place.parent
+        if not place.is_dir():
+            raise ValueError(f"{what} {path}: {place} is a file, not a folder")
+    else:
+        if path.is_dir():
+            raise ValueError(f"{what} {path}: is a folder; give a file path in it")
+        place = path.parent
+        if not place.is_dir():
+            raise ValueError(f"{what} {path}: the folder {place} does not exist")
+    try:
+        with tempfile.TemporaryFile(dir=place):
+            pass
+    except OSError as err:
+        raise ValueError(f"{what} {path}: cannot write in {place} ({err.strerror})") from None
+    if not folder and path.exists() and not os.access(path, os.W_OK):
+        raise ValueError(f"{what} {path}: the file is not writable")
+    return path
+
+
 class TrajectoryWriter:
     """Incremental TUM trajectory writer.
 
     Each ``write`` appends one flushed line to ``path + '.part'``; a clean ``close()`` (or a
     ``with`` block that exits normally) syncs it to disk and renames it to ``path``, so a file
     under the final name is always whole. If the ``with`` block raises, the ``.part`` file is
-    kept with every line written so far and the exception propagates.
+    kept with every line written so far and the exception propagates. Missing folders are
+    made; a path that cannot be written (a folder, a read-only place) is refused before
+    anything is written (``check_output``).
     """
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
-        self.part_path = _part_path(self.path)
+        check_output(self.path.parent, what="trajectory folder", folder=True)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        check_output(self.path, what="trajectory")
+        self.part_path = _part_path(self.path)
         self._file: IO[str] | None = self.part_path.open("w", encoding="utf-8")
         self.count = 0
 

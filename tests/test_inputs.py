@@ -318,6 +318,25 @@ OPTION_CASES = [
 ]
 
 
+def _out_cases(root: Path) -> list[tuple[str, list[str], str]]:
+    """Output paths ``edgevo run`` must refuse before reading a frame: (name, the options,
+    the message expected). ``root``: the clip's copy (its parent holds the outputs)."""
+    here = root.parent
+    (here / "results").mkdir(exist_ok=True)
+    return [
+        ("--out an existing folder", ["--out", str(here / "results")],
+         r"--out .*results: is a folder; give a file path in it"),
+        ("--out in a folder that does not exist", ["--out", str(here / "nowhere" / "t.txt")],
+         r"--out .*t.txt: the folder .*nowhere does not exist"),
+        ("--stats an existing folder", ["--out", str(here / "t.txt"), "--stats",
+                                        str(here / "results")],
+         r"--stats .*results: is a folder"),
+        ("--stats in a place nothing can be written", ["--out", str(here / "t.txt"), "--stats",
+                                                       "/proc/edgevo_stats.json"],
+         r"--stats /proc/edgevo_stats.json: cannot write in /proc"),
+    ]
+
+
 @pytest.fixture
 def clip(tmp_path) -> Path:
     return copy_clip(tmp_path / NAME)
@@ -371,6 +390,23 @@ def test_bad_options_stop_with_the_option_named(clip, case, monkeypatch, capsys)
                            str(clip.parent / "t.txt"), "--no-progress"])
     assert rc == 2 and re.search(case.problem, text), text
     assert "Traceback" not in text and "nan" not in text
+
+
+@pytest.mark.parametrize("n", range(4))
+def test_bad_output_paths_stop_before_tracking_and_write_nothing(clip, n, monkeypatch):
+    """A folder, a missing folder or an unwritable place as an output: exit 2, one line
+    naming the option and the problem, nothing written (no ``.part`` file, no stats)."""
+    name, options, problem = _out_cases(clip)[n]
+
+    def no_run(*args, **kw):
+        raise AssertionError("run_sequence called with a bad output path")
+
+    monkeypatch.setattr("edgevo_jax.pipeline.run.run_sequence", no_run)
+    before = sorted(clip.parent.rglob("*"))
+    rc, text = _user_sees(["run", str(clip), *options, "--no-progress"])
+    assert rc == 2 and re.search(problem, text), (name, text)
+    assert len(text.strip().splitlines()) == 1 and "Traceback" not in text, text
+    assert sorted(clip.parent.rglob("*")) == before
 
 
 def test_a_jpeg_folder_is_checked_from_its_headers(clip):
@@ -608,7 +644,8 @@ def catalogue() -> str:
     import tempfile
 
     groups: dict[str, list[tuple[str, str, int, str]]] = {
-        "Folders and images": [], "Options of `edgevo run`": [], "ROS bags": [],
+        "Folders and images": [], "Options of `edgevo run`": [], "Output paths": [],
+        "ROS bags": [],
         "Live cameras and scripts": []}
 
     def add(group: str, name: str, argv: list[str], folder: Path, base: Path) -> None:
@@ -664,6 +701,10 @@ def catalogue() -> str:
             add("Options of `edgevo run`", case.name,
                 ["run", str(root), *case.argv(root), "--out", str(base / "t.txt"),
                  "--no-progress"], base / f"o{n}", base)
+        root = copy_clip(base / "out" / NAME)
+        for name, options, _ in _out_cases(root):
+            add("Output paths", name, ["run", str(root), *options, "--no-progress"],
+                base / "out", base)
         try:
             import rosbags  # noqa: F401
         except ImportError:

@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 from ..datasets import BUNDLED_CLIP
-from ..io import json_safe
+from ..io import check_output, json_safe
 from ._common import _positive_int
 
 
@@ -75,6 +75,9 @@ def command(args: argparse.Namespace) -> int:
                          "configurations")
     if args.out is None:
         args.out = Path("batch.json")
+    check_output(args.out, what="--out")  # before anything runs
+    if args.traj_dir is not None:
+        check_output(args.traj_dir, what="--traj-dir", folder=True)
     from ..datasets.tum import load_sequence
     from ..io import matrices_to_poses7, write_trajectory
     from ..pipeline import batch
@@ -134,10 +137,9 @@ def _sweep(args: argparse.Namespace) -> int:
     if all(joined) and not 0 <= args.process_id < args.num_processes:
         raise ValueError(f"--process-id must be 0 .. {args.num_processes - 1}, got "
                          f"{args.process_id}")
+    check_output(args.out, what="--out", folder=True)  # before anything runs
     plan = sw.load_sweep(args.configs)
     sw.open_sources(plan)  # every source opens before any process starts
-    if args.out.exists() and not args.out.is_dir():
-        raise ValueError(f"--out {args.out} is a file, not a folder")
     args.out.mkdir(parents=True, exist_ok=True)
     import jax
 

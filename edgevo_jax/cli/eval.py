@@ -78,7 +78,8 @@ def command(args: argparse.Namespace) -> int:
         print(json.dumps(json_safe({"ate": a, "rpe": r, "options": options})))
         return 0
     scale = f", scale {a['scale']:.6f}" if args.align == "sim3" else ""
-    print(f"ATE ({args.align} alignment{scale}, {a['n']} pairs; m)")
+    aligned = "no alignment" if args.align == "none" else f"{args.align} alignment"
+    print(f"ATE ({aligned}{scale}, {a['n']} pairs; m)")
     print("  " + _stat_line(a, ""))
     what = (f"delta = {args.delta:g} ({unit})" + (", all pairs" if args.all_pairs else "")
             + f", {r['n']} pairs")

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from ..datasets import BUNDLED_CLIP
+from ..io import check_output
 from ._common import _read
 
 
@@ -75,6 +76,7 @@ def command(args: argparse.Namespace) -> int:
         return 2
     if not (args.dpi > 0 and math.isfinite(args.dpi)):
         raise ValueError(f"--dpi must be positive, got {args.dpi}")
+    check_output(args.out, what="--out")  # before anything is drawn
     out = {"trajectory": _plot_trajectory, "frame": _plot_frame,
            "selection": _plot_selection, "configs": _plot_configs}[args.figure](args)
     print(f"wrote {out}")

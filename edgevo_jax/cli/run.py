@@ -13,7 +13,7 @@ from pathlib import Path
 from ..camera import CAMERAS
 from ..datasets import BUNDLED_CLIP
 from ..datasets.source import DEPTH_TOPIC, INFO_TOPIC, RGB_TOPIC
-from ..io import json_safe
+from ..io import check_output, json_safe
 from ._common import _positive_float, _positive_int
 
 
@@ -102,6 +102,10 @@ def command(args: argparse.Namespace) -> int:
     from ..datasets.source import SourceError, open_source
     from ..pipeline.run import run_sequence, summarise
 
+    # every output is checked before anything is read or tracked (docs/errors.md)
+    for option in ("out", "stats", "rerun"):
+        if getattr(args, option) is not None:
+            check_output(getattr(args, option), what=f"--{option}")
     config = Config().with_overrides(args.overrides)
     params = _read_params(args.params, config) if args.params is not None else None
     path = args.sequence if args.sequence is not None else BUNDLED_CLIP
@@ -117,7 +121,8 @@ def command(args: argparse.Namespace) -> int:
         from ..viz.recording import RerunRecording
 
         recording = RerunRecording(seq, path=args.rerun, spawn=args.rerun_viewer)
-    out = args.out if args.out is not None else Path(f"{seq.name}.traj.txt")
+    out = args.out if args.out is not None else check_output(Path(f"{seq.name}.traj.txt"),
+                                                             what="the trajectory file")
     try:
         run = run_sequence(seq, config, out=out, progress=not args.no_progress,
                            max_frames=args.max_frames, params=params, started=args.started,
@@ -133,9 +138,8 @@ def command(args: argparse.Namespace) -> int:
             seq.close()
     stats = summarise(run, seq)
     if args.stats is not None:
-        args.stats.parent.mkdir(parents=True, exist_ok=True)
         args.stats.write_text(json.dumps(json_safe(stats), indent=2) + "\n")
-    print(_summary_text(stats, out))
+    print(_summary_text(stats, out, _rpe_per_frame(run, seq)))
     if args.rerun is not None:
         print(f"rerun recording: {args.rerun} (open with `rerun {args.rerun}`)")
     return 0
@@ -161,25 +165,43 @@ def _read_params(path: Path, config):
         raise ValueError(f"--params {path}: {err}") from None
 
 
-def _summary_text(stats: dict, out: Path) -> str:
+def _rpe_per_frame(run, seq) -> float | None:
+    """The run's RPE between consecutive frames (m), as ``edgevo eval`` reports it by
+    default; None without ground truth or pairs."""
+    from ..io import matrices_to_poses7
+    from ..metrics import rpe
+
+    if seq.groundtruth is None or len(run.results) < 2:
+        return None
+    try:
+        r = rpe(seq.groundtruth, (run.timestamps, matrices_to_poses7(run.poses)))
+    except ValueError:  # no timestamps in common with the ground truth
+        return None
+    return r["rmse"] if r["n"] else None
+
+
+def _summary_text(stats: dict, out: Path, rpe_frame: float | None = None) -> str:
     ms = stats["ms_per_frame"]
+    timing = (f"mean {ms['mean']:.1f}  median {ms['median']:.1f}  p90 {ms['p90']:.1f}"
+              "  (every later frame, decoding excluded)" if math.isfinite(ms["mean"])
+              else "n/a (no frame after the first: its time is the start-up)")
     lines = [
         f"sequence      {stats['sequence']}",
         f"frames        {stats['frames']}  (keyframes {stats['keyframes']}, weak {stats['weak']}, "
         f"lost {stats['lost']})",
         f"start-up      {stats['startup_s']:.2f} s (command to first pose; compiling or "
         f"loading every program: {stats['warm_up_s']:.2f} s)",
-        f"ms/frame      mean {ms['mean']:.1f}  median {ms['median']:.1f}  p90 {ms['p90']:.1f}"
-        "  (every later frame, decoding excluded)",
+        f"ms/frame      {timing}",
     ]
     if "ate_rmse_m" in stats:
         lines.append(f"ATE RMSE      {stats['ate_rmse_m']:.4f} m")
         rpe = stats.get("rpe_rmse_m_per_s")
-        lines.append("RPE RMSE      " + ("n/a (sequence shorter than 1 s)" if rpe is None
-                                         or math.isnan(rpe) else f"{rpe:.4f} m/s"))
+        per_s = ("over 1 s n/a (the run is shorter)" if rpe is None or math.isnan(rpe)
+                 else f"{rpe:.4f} m/s over 1 s")
+        per_frame = "" if rpe_frame is None else f"; {rpe_frame:.4f} m per frame (edgevo eval's)"
+        lines.append(f"RPE RMSE      {per_s}{per_frame}")
     else:
         lines.append("ATE           n/a (" + stats.get("ground_truth_note", "no ground truth")
                      + ")")
     lines.append(f"trajectory    {out}")
     return "\n".join(lines)
-
