@@ -48,7 +48,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                      help="a text file of 4 numbers, fx fy cx cy (ETH3D's calibration.txt), "
                           "or 9, fx fy cx cy k1 k2 p1 p2 k3 (OpenCV distortion of the raw "
                           "images, removed before tracking); a global shutter unless "
-                          "--set readout_s=SECONDS")
+                          "--set readout_s=SECONDS; or a camera file, FILE.toml, with its "
+                          "readout and depth fields (docs/camera_file.md)")
     cam.add_argument("--intrinsics", type=float, nargs=4, default=None,
                      metavar=("FX", "FY", "CX", "CY"),
                      help="a pinhole camera of undistorted images with a global shutter (for "
