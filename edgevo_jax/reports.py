@@ -18,14 +18,14 @@ __all__ = ["fmt", "int_list", "markdown_table", "write_json", "write_text"]
 _INT_ITEM = re.compile(r"^(-?\d+)\s*(?:-\s*(-?\d+))?$")
 
 
-def fmt(value: object, spec: str, missing: str = "n/a") -> str:
+def fmt(value: object, spec: str, *, missing: str = "n/a") -> str:
     """``format(value, spec)``, or ``missing`` for None and for a NaN or infinite number."""
     if value is None or (isinstance(value, float) and not math.isfinite(value)):
         return missing
     return format(value, spec)
 
 
-def markdown_table(head: Sequence[str], rows: Sequence[Sequence[str]],
+def markdown_table(head: Sequence[str], rows: Sequence[Sequence[str]], *,
                    align: str | None = None) -> str:
     """A markdown table: the ``head`` row, the separator (``align``: one character per
     column, ``r`` right-aligned ``---:``, anything else ``---``; default all ``---``) and one
@@ -49,7 +49,7 @@ def write_text(path: str | os.PathLike[str], text: str) -> Path:
     return out
 
 
-def write_json(path: str | os.PathLike[str], obj: object, indent: int | None = 2) -> Path:
+def write_json(path: str | os.PathLike[str], obj: object, *, indent: int | None = 2) -> Path:
     """Write ``obj`` as JSON to ``path`` (parent folders made): NaN and infinities as null,
     numpy arrays and scalars as lists and numbers (``io.json_safe``), a final newline."""
     return write_text(path, json.dumps(json_safe(obj), indent=indent, allow_nan=False) + "\n")

@@ -149,7 +149,7 @@ def run_peer(method: str, seq: Any, max_frames: int | None = None) -> dict[str, 
     baseline = _maxrss_mib()
     t0 = time.perf_counter()
     try:
-        track = measure.run_peer(method, seq, max_frames)
+        track = measure.run_peer(method, seq, max_frames=max_frames)
     except PeerMissing as err:
         return {"missing": str(err)}
     wall_s = time.perf_counter() - t0

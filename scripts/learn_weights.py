@@ -186,7 +186,8 @@ class Part(NamedTuple):
 
 def make_part(seq, index: int, frames: tuple[int, int]) -> Part:
     a, b = max(0, frames[0]), min(frames[1], len(seq))
-    poses = groundtruth_at(seq, seq.timestamps[a:b], GT_MAX_GAP, interpolate=True)
+    poses = groundtruth_at(seq, seq.timestamps[a:b], max_diff=GT_MAX_GAP,
+                           interpolate=True)
     return Part(seq, index, (a, b), {a + k: T for k, T in enumerate(poses)
                                      if np.isfinite(T).all()})
 
@@ -450,7 +451,7 @@ def load_all(paths: list[Path], frame_step: int = 1) -> list | str:
         if not path.is_dir():
             return (f"sequence folder not found: {path} (the fr3_teddy_first200 clip lives in "
                     f"{SHARED_TUM}; pass another TUM folder as the first argument)")
-        seq = load_clip(path, frame_step)
+        seq = load_clip(path, frame_step=frame_step)
         if seq.groundtruth is None:
             return f"{seq.name} has no groundtruth.txt: nothing to fit against"
         seqs.append(seq)

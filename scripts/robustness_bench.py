@@ -260,12 +260,12 @@ def run_all(seq_dirs: Sequence[Path], steps: Sequence[int], seeds: Sequence[int]
     runs: list[dict[str, Any]] = []
     warmed = False
     for seq_dir in seq_dirs:
-        full = load_clip(seq_dir, 1, max_frames)
+        full = load_clip(seq_dir, max_frames=max_frames)
         if not warmed:
             warm_up(full, warmup_frames, config)
             warmed = True
         for k in steps:  # each over the same span of time as the full sequence's cut
-            seq = load_clip(seq_dir, k, max_frames)
+            seq = load_clip(seq_dir, frame_step=k, max_frames=max_frames)
             base = {"sequence": full.name, "step": k, "path": str(seq_dir)}
             jobs: list[tuple[str, int | None]] = [(EDGEVO, s) for s in seeds]
             jobs += [(p, None) for p in peers]

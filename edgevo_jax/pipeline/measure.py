@@ -32,7 +32,7 @@ DIVERGED_ROT_DEG = 3.0
 GT_MAX_DIFF_S = 0.02  # s to the nearest ground-truth pose, as the ATE's association
 
 
-def load_clip(path: str | os.PathLike[str], frame_step: int = 1,
+def load_clip(path: str | os.PathLike[str], *, frame_step: int = 1,
               max_frames: int | None = None) -> TumSequence:
     """The TUM folder at ``path`` played at 1/``frame_step`` of its frame rate as the
     benchmark's lists would be recorded (``load_sequence(..., frame_step=k)``: every k-th
@@ -49,7 +49,7 @@ def load_clip(path: str | os.PathLike[str], frame_step: int = 1,
     return subsequence(seq, 0, int(np.searchsorted(seq.timestamps, t_end, "right")))
 
 
-def run_peer(method: str, seq: Any, max_frames: int | None = None) -> PeerTrack:
+def run_peer(method: str, seq: Any, *, max_frames: int | None = None) -> PeerTrack:
     """Track the first ``max_frames`` frames of ``seq`` (None: all) with the peer ``method``
     (``peers.make_peer``; PeerMissing when it cannot run here) from edgevo's first pose
     (``run.initial_pose``); the track, with the peer's description."""
@@ -58,7 +58,7 @@ def run_peer(method: str, seq: Any, max_frames: int | None = None) -> PeerTrack:
     return track_peer(peer, seq, n, initial_pose(seq))
 
 
-def frame_stats(frame_ms: Sequence[float], skip: int = WARMUP_FRAMES) -> dict[str, float]:
+def frame_stats(frame_ms: Sequence[float], *, skip: int = WARMUP_FRAMES) -> dict[str, float]:
     """Median, p90, mean and max of per-frame times after the first ``skip`` frames (NaN each
     when none is left)."""
     v = np.asarray(frame_ms[skip:], np.float64)
@@ -107,8 +107,8 @@ def accuracy(groundtruth: tuple[np.ndarray, np.ndarray] | None, timestamps: np.n
     return out
 
 
-def groundtruth_at(seq: Any, timestamps: Sequence[float], max_diff: float = GT_MAX_DIFF_S,
-                   *, interpolate: bool = False) -> np.ndarray:
+def groundtruth_at(seq: Any, timestamps: Sequence[float], *, max_diff: float = GT_MAX_DIFF_S,
+                   interpolate: bool = False) -> np.ndarray:
     """Ground-truth T_world_cam (N, 4, 4) at each timestamp (``datasets.groundtruth_pose_at``:
     the nearest pose, or with ``interpolate`` the pose at that time), all NaN where there is
     none within ``max_diff`` s or the sequence has no ground truth."""

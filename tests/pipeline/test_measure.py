@@ -161,17 +161,17 @@ def test_groundtruth_at() -> None:
 
 def test_load_clip_at_a_frame_step() -> None:
     full = measure.load_clip(BUNDLED_CLIP)
-    assert len(full) == 9 and len(measure.load_clip(BUNDLED_CLIP, 2)) == 5
-    cut = measure.load_clip(BUNDLED_CLIP, 1, 4)
+    assert len(full) == 9 and len(measure.load_clip(BUNDLED_CLIP, frame_step=2)) == 5
+    cut = measure.load_clip(BUNDLED_CLIP, max_frames=4)
     assert cut.name == f"{full.name}_frames0-4"
     np.testing.assert_array_equal(cut.timestamps, full.timestamps[:4])
-    every2 = measure.load_clip(BUNDLED_CLIP, 2)
-    half = measure.load_clip(BUNDLED_CLIP, 2, 4)  # the span of time of the first 4 frames
+    every2 = measure.load_clip(BUNDLED_CLIP, frame_step=2)
+    half = measure.load_clip(BUNDLED_CLIP, frame_step=2, max_frames=4)  # the first 4's time
     assert 0 < len(half) < len(every2) and half.timestamps[-1] <= full.timestamps[3]
     assert every2.timestamps[len(half)] > full.timestamps[3]
-    assert len(measure.load_clip(BUNDLED_CLIP, 1, 100)) == 9
+    assert len(measure.load_clip(BUNDLED_CLIP, max_frames=100)) == 9
     with pytest.raises(ValueError, match="positive"):
-        measure.load_clip(BUNDLED_CLIP, 1, 0)
+        measure.load_clip(BUNDLED_CLIP, max_frames=0)
 
 
 def test_run_peer_starts_at_edgevos_first_pose(monkeypatch) -> None:
