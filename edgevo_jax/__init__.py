@@ -20,7 +20,8 @@ Layout: ``image`` (preprocessing, interpolation), ``frontend`` (residual, alignm
 selection, keyframes), ``backend`` (the window, Schur complement, marginalisation),
 ``learn`` (Params, differentiable tracking, losses), ``pipeline`` (Odometry, runs, batches),
 with ``geometry``, ``camera``, ``config`` / ``derive``, ``solvers``, ``metrics``, ``io``,
-``datasets``, ``viz`` and ``cli`` beside them.
+``datasets``, ``viz`` and ``cli`` beside them; ``peers`` (other odometry methods, for
+comparison), ``pipeline.measure`` and ``reports`` serve the benchmarks and experiments.
 """
 
 from .camera import Camera, Intrinsics

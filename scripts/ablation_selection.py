@@ -50,7 +50,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime
-import json
 import math
 import shlex
 import sys
@@ -67,10 +66,12 @@ from edgevo_jax.datasets.tum import SHARED_CLIPS as DEFAULT_CLIPS
 from edgevo_jax.datasets.tum import SHARED_TUM, TumSequence, load_sequence
 from edgevo_jax.frontend.selection import candidates, select
 from edgevo_jax.image.preprocess import preprocess, to_gray
-from edgevo_jax.io import json_safe
+from edgevo_jax.pipeline.measure import finite_stats
 from edgevo_jax.pipeline.run import run_sequence, summarise
 from edgevo_jax.programs import enable_cache
 from edgevo_jax.provenance import load_average, machine_info
+from edgevo_jax.reports import fmt, int_list, write_json
+from edgevo_jax.reports import markdown_table as md_table
 from edgevo_jax.viz import plot_ablation, plot_selection_overlay
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -79,18 +80,11 @@ MODE_ORDER = ("spg", "greedy", "random", "all")
 SPREAD_CELL = 32  # px: cell size of the spread measure of the selection figure
 
 
+def _fmt(value: float | None, spec: str) -> str:
+    return fmt(value, spec, missing="-")
+
+
 # ---------------------------------------------------------------------------- arguments
-
-
-def _int_list(text: str) -> list[int]:
-    try:
-        values = [int(s) for s in text.split(",") if s.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected comma-separated integers, got {text!r}") from None
-    if not values:
-        raise argparse.ArgumentTypeError("expected at least one integer")
-    return values
 
 
 def _mode_list(text: str) -> list[str]:
@@ -112,9 +106,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="folder for ablation.json and the PNGs (default: docs/ablation)")
     p.add_argument("--max-frames", type=int, default=None,
                    help="use at most this many frames per sequence (default: all)")
-    p.add_argument("--seeds", type=_int_list, default=[0, 1, 2],
-                   help="comma-separated seeds for the stochastic modes (default: 0,1,2)")
-    p.add_argument("--num-edges", type=_int_list, default=[128, 256, 512, 1024],
+    p.add_argument("--seeds", type=int_list, default=[0, 1, 2],
+                   help="seeds for the stochastic modes, 0,1,2 or 0-2 (default: 0,1,2)")
+    p.add_argument("--num-edges", type=int_list, default=[128, 256, 512, 1024],
                    help="comma-separated edge budgets (default: 128,256,512,1024)")
     p.add_argument("--modes", type=_mode_list, default=list(MODE_ORDER),
                    help="comma-separated selection modes (default: spg,greedy,random,all)")
@@ -132,43 +126,6 @@ def default_sequences() -> list[Path]:
         raise SystemExit(f"error: none of {', '.join(DEFAULT_CLIPS)} found in {SHARED_TUM}; "
                          "pass TUM sequence folders (SEQ_DIR ...)")
     return found
-
-
-# ---------------------------------------------------------------------------- helpers
-
-
-
-
-def _finite(values: Sequence[float]) -> np.ndarray:
-    v = np.asarray([math.nan if x is None else x for x in values], np.float64)
-    return v[np.isfinite(v)]
-
-
-def _mean(values: Sequence[float]) -> float:
-    v = _finite(values)
-    return float(v.mean()) if v.size else math.nan
-
-
-def _std(values: Sequence[float]) -> float:
-    v = _finite(values)
-    return float(v.std(ddof=1)) if v.size > 1 else math.nan
-
-
-def _median(values: Sequence[float]) -> float:
-    v = _finite(values)
-    return float(np.median(v)) if v.size else math.nan
-
-
-def _fmt(value: float | None, spec: str) -> str:
-    return "-" if value is None or not math.isfinite(value) else format(value, spec)
-
-
-
-
-
-
-
-
 
 
 # ---------------------------------------------------------------------------- runs
@@ -219,7 +176,7 @@ def one_run(seq: TumSequence, mode: str, num_edges: int | None, seed: int,
         "ms_per_frame_p90": s["ms_per_frame"]["p90"],
         "preprocess_ms_median": s["preprocess_ms"]["median"],
         "solve_wait_ms_median": s["solve_wait_ms"]["median"],
-        "select_ms_median": _median(select_ms[1:]),
+        "select_ms_median": finite_stats(select_ms[1:])["median"],
         "select_ms_first": select_ms[0] if select_ms else math.nan,
         "edges_used_mean": s["edges_used_mean"],
         "startup_s": s["startup_s"],
@@ -235,21 +192,23 @@ def aggregate(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
         groups.setdefault((r["sequence"], r["selection"], r["num_edges"]), []).append(r)
     out = []
     for (seq, mode, n), rs in groups.items():
-        ates = [r["ate_rmse_m"] for r in rs]
+        ate = finite_stats([r["ate_rmse_m"] for r in rs])
+        over = {k: finite_stats([r[k] for r in rs]) for k in (
+            "edges_used_mean", "ms_per_frame_median", "select_ms_median", "keyframes")}
         out.append({
             "sequence": seq,
             "selection": mode,
             "num_edges": n,
             "runs": len(rs),
             "seeds": [r["seed"] for r in rs],
-            "edges_used_mean": _mean([r["edges_used_mean"] for r in rs]),
-            "ms_per_frame_median": _median([r["ms_per_frame_median"] for r in rs]),
-            "ate_rmse_m_mean": _mean(ates),
-            "ate_rmse_m_std": _std(ates),
-            "ate_rmse_m_min": float(_finite(ates).min()) if _finite(ates).size else math.nan,
-            "ate_rmse_m_max": float(_finite(ates).max()) if _finite(ates).size else math.nan,
-            "select_ms_median": _median([r["select_ms_median"] for r in rs]),
-            "keyframes_mean": _mean([r["keyframes"] for r in rs]),
+            "edges_used_mean": over["edges_used_mean"]["mean"],
+            "ms_per_frame_median": over["ms_per_frame_median"]["median"],
+            "ate_rmse_m_mean": ate["mean"],
+            "ate_rmse_m_std": ate["std"],
+            "ate_rmse_m_min": ate["min"],
+            "ate_rmse_m_max": ate["max"],
+            "select_ms_median": over["select_ms_median"]["median"],
+            "keyframes_mean": over["keyframes"]["mean"],
             "lost_total": int(sum(r["lost"] for r in rs)),
         })
     seq_rank = {seq: i for i, seq in enumerate(dict.fromkeys(r["sequence"] for r in rows))}
@@ -270,21 +229,17 @@ def _progress_line(k: int, total: int, row: dict[str, Any]) -> str:
 
 def markdown_table(records: Sequence[dict[str, Any]]) -> str:
     """The aggregates as a markdown table (ATE in mm, times in ms)."""
-    lines = [
-        "| sequence | selection | budget | edges used | ATE mm (mean ± std) | "
-        "ms / frame | select ms | keyframes | runs |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
-    ]
+    rows = []
     for r in records:
-        budget = "-" if r["num_edges"] is None else str(r["num_edges"])
         std = _fmt(r["ate_rmse_m_std"] * 1e3, ".2f")
-        ate = _fmt(r["ate_rmse_m_mean"] * 1e3, ".2f") + ("" if std == "-" else f" ± {std}")
-        lines.append(
-            f"| {r['sequence']} | {r['selection']} | {budget} | "
-            f"{_fmt(r['edges_used_mean'], '.0f')} | {ate} | "
-            f"{_fmt(r['ms_per_frame_median'], '.1f')} | {_fmt(r['select_ms_median'], '.1f')} | "
-            f"{_fmt(r['keyframes_mean'], '.1f')} | {r['runs']} |")
-    return "\n".join(lines)
+        rows.append([
+            r["sequence"], r["selection"], "-" if r["num_edges"] is None else str(r["num_edges"]),
+            _fmt(r["edges_used_mean"], ".0f"),
+            _fmt(r["ate_rmse_m_mean"] * 1e3, ".2f") + ("" if std == "-" else f" ± {std}"),
+            _fmt(r["ms_per_frame_median"], ".1f"), _fmt(r["select_ms_median"], ".1f"),
+            _fmt(r["keyframes_mean"], ".1f"), str(r["runs"])])
+    return md_table(("sequence", "selection", "budget", "edges used", "ATE mm (mean ± std)",
+                     "ms / frame", "select ms", "keyframes", "runs"), rows, align="llrrrrrrr")
 
 
 # ---------------------------------------------------------------------------- Fig. 5
@@ -415,8 +370,7 @@ def main(argv: list[str] | None = None) -> int:
         "runs": rows,
         "figures": figures,
     }
-    (out_dir / "ablation.json").write_text(
-        json.dumps(json_safe(report), indent=2, allow_nan=False) + "\n", encoding="utf-8")
+    write_json(out_dir / "ablation.json", report)
     print(f"wrote {out_dir / 'ablation.json'}", file=sys.stderr, flush=True)
     print(markdown_table(aggregates))
     return 0

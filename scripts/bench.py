@@ -12,23 +12,11 @@ Methods:
   (``mapping=false``: no local mapping) and any ``--edgevo`` variant, e.g.
   ``--edgevo "e256=num_edges=256"``: ``edgevo_jax.pipeline.run.run_sequence`` (keyframe-based,
   pipelined: the solve of frame i overlaps the preprocessing of frame i+1).
-- ``cv2_rgb``, ``cv2_depth``, ``cv2_rgbd``: OpenCV 5 ``cv2.Odometry`` with
-  ``OdometryType_RGB`` / ``_DEPTH`` / ``_RGB_DEPTH`` (``OdometryAlgoType_COMMON``, default
-  settings plus the sequence's camera matrix), frame to frame: one ``cv2.OdometryFrame``
-  (float32 depth in metres and, except for DEPTH, the gray image) per frame, then
-  ``prepareFrames(previous, current)`` and ``compute(previous, current)``.
-- ``o3d_color``, ``o3d_hybrid``: Open3D ``o3d.pipelines.odometry.compute_rgbd_odometry`` with
-  ``RGBDOdometryJacobianFromColorTerm`` / ``...FromHybridTerm``, frame to frame, identity
-  initial guess, default ``OdometryOption``; images from
-  ``RGBDImage.create_from_color_and_depth(depth_scale=1.0, depth_trunc=4.0,
-  convert_rgb_to_intensity=True)`` on depth in metres.
-
-Both peers return Rt with ``Rt * p_src = p_dst`` (the pose of the source frame seen from the
-target frame, T_dst_src; checked against ground truth on fr3_teddy frames 20 -> 25). Every
-peer starts from edgevo's first pose (``runner.initial_pose``: T_world_cam of frame 0 from
-the nearest ground-truth pose) and chains ``T_world_k = T_world_(k-1) @ inv(Rt_k)``. A pair
-whose ``compute`` returns false, raises, or gives a non-finite matrix counts as a lost frame
-and reuses the previous motion (constant velocity; identity before any success).
+- ``cv2_rgb``, ``cv2_depth``, ``cv2_rgbd`` (OpenCV 5 ``cv2.Odometry``), ``o3d_color``,
+  ``o3d_hybrid`` (Open3D ``compute_rgbd_odometry``): the peers of ``edgevo_jax.peers``
+  (their calls and settings are described there), frame to frame from edgevo's first pose
+  (``runner.initial_pose``: T_world_cam of frame 0 from the nearest ground-truth pose); a
+  pair that fails counts as a lost frame and reuses the previous motion.
 
 What is measured, per method and sequence, each in its own child process (``--one``), so
 that the peak RSS is the method's own and a crashing peer cannot take the benchmark down:
@@ -86,7 +74,7 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
@@ -94,15 +82,16 @@ from edgevo_jax import enable_batch_exact
 from edgevo_jax.datasets.tum import SHARED_CLIPS as DEFAULT_CLIPS
 from edgevo_jax.datasets.tum import SHARED_TUM
 from edgevo_jax.io import json_safe
+from edgevo_jax.peers import PEERS, PeerMissing
+from edgevo_jax.pipeline import measure
+from edgevo_jax.pipeline.measure import WARMUP_FRAMES, frame_stats
 from edgevo_jax.provenance import machine_info
+from edgevo_jax.reports import fmt, write_json, write_text
+from edgevo_jax.reports import markdown_table as md_table
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_EDGEVO = "edgevo"
 # the edgevo variants every run includes: selection off (all edges) and local mapping off
 BUILTIN_VARIANTS = ("edgevo_all=selection=all", "edgevo_nomap=mapping=false")
-PEERS = ("cv2_rgb", "cv2_depth", "cv2_rgbd", "o3d_color", "o3d_hybrid")
-WARMUP_FRAMES = 2  # frame 0 sets up, frame 1 is the first pair (edgevo: compiles)
-O3D_DEPTH_TRUNC_M = 4.0  # = OdometryOption().depth_max
 PROFILE_NOTE = (
     "solve wait = FrameResult.solve_ms, from submitting frame k to its result; it runs while "
     "the host preprocesses frame k+1, so preprocess and solve overlap and the stages do not "
@@ -110,134 +99,6 @@ PROFILE_NOTE = (
     "selection and mapping: median ms per keyframe, on the keyframes (the share given), "
     "which they lengthen"
 )
-
-Pose = np.ndarray  # (4, 4) float64
-
-
-class PeerMissing(Exception):
-    """The peer cannot run here (library absent or too old, unknown name)."""
-
-
-class PeerTracker(Protocol):
-    """A frame-to-frame odometry peer."""
-
-    description: str
-
-    def step(self, rgb: np.ndarray, depth: np.ndarray) -> Pose | None:
-        """Feed the next frame (rgb uint8 RGB order, depth float32 metres). Returns Rt =
-        T_current_previous, or None for the first frame or a failed pair."""
-        ...
-
-
-# --------------------------------------------------------------------------------------------
-# peers
-
-
-def camera_matrix(intrinsics: Sequence[float]) -> np.ndarray:
-    """3x3 pinhole matrix from (fx, fy, cx, cy)."""
-    fx, fy, cx, cy = (float(v) for v in intrinsics)
-    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-
-
-class Cv2Odometry:
-    """OpenCV 5 ``cv2.Odometry``, frame to frame (``prepareFrames`` + ``compute``)."""
-
-    MODES = {"cv2_rgb": "RGB", "cv2_depth": "DEPTH", "cv2_rgbd": "RGB_DEPTH"}
-
-    def __init__(self, method: str, intrinsics: Sequence[float]) -> None:
-        try:
-            import cv2
-        except ImportError as err:
-            raise PeerMissing(f"cannot import cv2: {err}") from None
-        missing = [n for n in ("Odometry", "OdometryFrame", "OdometrySettings")
-                   if not hasattr(cv2, n)]
-        if missing:
-            raise PeerMissing(f"OpenCV {cv2.__version__} has no cv2.{', cv2.'.join(missing)} "
-                              "(needs OpenCV 5)")
-        self._cv2 = cv2
-        mode = self.MODES[method]
-        settings = cv2.OdometrySettings()
-        settings.setCameraMatrix(camera_matrix(intrinsics).astype(np.float32))
-        self._odo = cv2.Odometry(getattr(cv2, f"OdometryType_{mode}"), settings,
-                                 cv2.OdometryAlgoType_COMMON)
-        self._use_image = mode != "DEPTH"
-        self._prev: tuple[Any, tuple[np.ndarray, ...]] | None = None
-        self.description = (
-            f"cv2.Odometry(cv2.OdometryType_{mode}, OdometrySettings(cameraMatrix=K), "
-            "cv2.OdometryAlgoType_COMMON); frame = cv2.OdometryFrame(depth_m_float32"
-            + (", gray_uint8" if self._use_image else "")
-            + "); odo.prepareFrames(prev, cur); ok, Rt = odo.compute(prev, cur)"
-        )
-
-    def step(self, rgb: np.ndarray, depth: np.ndarray) -> Pose | None:
-        """See :class:`PeerTracker`."""
-        cv2 = self._cv2
-        depth = np.ascontiguousarray(depth, np.float32)
-        if self._use_image:
-            gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
-            frame, keep = cv2.OdometryFrame(depth, gray), (depth, gray)
-        else:
-            frame, keep = cv2.OdometryFrame(depth), (depth,)
-        # the frame with the arrays it may point into, kept alive as long as the frame
-        prev, self._prev = self._prev, (frame, keep)
-        if prev is None:
-            return None
-        self._odo.prepareFrames(prev[0], frame)
-        ok, rt = self._odo.compute(prev[0], frame)
-        return np.asarray(rt, np.float64) if ok else None
-
-
-class Open3dOdometry:
-    """Open3D ``compute_rgbd_odometry`` (colour or hybrid term), frame to frame."""
-
-    def __init__(self, method: str, intrinsics: Sequence[float], width: int, height: int) -> None:
-        try:
-            import open3d as o3d
-        except (ImportError, OSError) as err:  # OSError: a missing system library
-            raise PeerMissing(f"cannot import open3d: {err}") from None
-        self._o3d = o3d
-        odometry = o3d.pipelines.odometry
-        term = "Color" if method == "o3d_color" else "Hybrid"
-        self._jacobian = getattr(odometry, f"RGBDOdometryJacobianFrom{term}Term")()
-        self._option = odometry.OdometryOption()
-        fx, fy, cx, cy = (float(v) for v in intrinsics)
-        self._intrinsic = o3d.camera.PinholeCameraIntrinsic(width, height, fx, fy, cx, cy)
-        self._prev: Any = None
-        self.description = (
-            "o3d.pipelines.odometry.compute_rgbd_odometry(prev, cur, PinholeCameraIntrinsic, "
-            f"np.eye(4), RGBDOdometryJacobianFrom{term}Term(), OdometryOption()); "
-            "o3d.geometry.RGBDImage.create_from_color_and_depth(Image(rgb), Image(depth_m), "
-            f"depth_scale=1.0, depth_trunc={O3D_DEPTH_TRUNC_M}, convert_rgb_to_intensity=True)"
-        )
-
-    def step(self, rgb: np.ndarray, depth: np.ndarray) -> Pose | None:
-        """See :class:`PeerTracker`."""
-        o3d = self._o3d
-        cur = o3d.geometry.RGBDImage.create_from_color_and_depth(
-            o3d.geometry.Image(np.ascontiguousarray(rgb)),
-            o3d.geometry.Image(np.ascontiguousarray(depth, np.float32)),
-            depth_scale=1.0, depth_trunc=O3D_DEPTH_TRUNC_M, convert_rgb_to_intensity=True,
-        )
-        prev, self._prev = self._prev, cur
-        if prev is None:
-            return None
-        ok, trans, _info = o3d.pipelines.odometry.compute_rgbd_odometry(
-            prev, cur, self._intrinsic, np.eye(4), self._jacobian, self._option)
-        return np.asarray(trans, np.float64) if ok else None
-
-
-def make_peer(method: str, intrinsics: Sequence[float], width: int, height: int) -> PeerTracker:
-    """The peer tracker called ``method``; PeerMissing if unknown or its library is absent."""
-    if method in Cv2Odometry.MODES:
-        return Cv2Odometry(method, intrinsics)
-    if method in ("o3d_color", "o3d_hybrid"):
-        return Open3dOdometry(method, intrinsics, width, height)
-    raise PeerMissing(f"unknown method {method!r} (peers: {', '.join(PEERS)}; edgevo variants "
-                      "are named with --edgevo)")
-
-
-# --------------------------------------------------------------------------------------------
-# running one method on one sequence (in-process; the child process calls this)
 
 
 def parse_variant(spec: str) -> tuple[str, list[str]]:
@@ -260,25 +121,6 @@ def parse_variant(spec: str) -> tuple[str, list[str]]:
     return name, overrides
 
 
-def _warm(frame_ms: Sequence[float]) -> np.ndarray:
-    return np.asarray(frame_ms[WARMUP_FRAMES:], np.float64)
-
-
-def _median(values: Sequence[float] | np.ndarray) -> float:
-    v = np.asarray(values, np.float64)
-    return float(np.median(v)) if v.size else math.nan
-
-
-def _p90(values: Sequence[float] | np.ndarray) -> float:
-    v = np.asarray(values, np.float64)
-    return float(np.percentile(v, 90)) if v.size else math.nan
-
-
-def _max(values: Sequence[float] | np.ndarray) -> float:
-    v = np.asarray(values, np.float64)
-    return float(v.max()) if v.size else math.nan
-
-
 def _maxrss_mib() -> float:
     """Peak resident set size of this process so far (MiB; ru_maxrss is KiB on Linux)."""
     kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -287,101 +129,42 @@ def _maxrss_mib() -> float:
 
 def accuracy(seq: Any, timestamps: np.ndarray, poses: np.ndarray) -> dict[str, Any]:
     """ATE RMSE (m) and RPE translation RMSE (m/s; NaN for clips under 1 s) of T_world_cam
-    ``poses`` (N, 4, 4) against the sequence's ground truth."""
-    from edgevo_jax.io import matrices_to_poses7
-    from edgevo_jax.metrics import ate, rpe_per_second
-
-    out: dict[str, Any] = {"ate_rmse_m": math.nan, "rpe_m_per_s": math.nan}
-    if seq.groundtruth is None:
-        out["accuracy_note"] = "no groundtruth.txt"
-        return out
-    gt_t, gt_p = seq.groundtruth
-    est = matrices_to_poses7(poses)
-    try:
-        out["ate_rmse_m"] = ate((gt_t, gt_p), (timestamps, est))["rmse"]
-        if timestamps.size and timestamps[-1] - timestamps[0] >= 1.0:
-            out["rpe_m_per_s"] = rpe_per_second((gt_t, gt_p), (timestamps, est))[
-                "trans_rmse_m_per_s"]
-        else:
-            out["accuracy_note"] = "RPE n/a: clip shorter than 1 s"
-    except ValueError as err:  # e.g. fewer than 3 poses associated with the ground truth
-        out["accuracy_note"] = str(err)
+    ``poses`` (N, 4, 4) against the sequence's ground truth (``measure.accuracy``)."""
+    out = measure.accuracy(seq.groundtruth, timestamps, poses,
+                           no_groundtruth="no groundtruth.txt")
+    del out["rpe_deg_per_s"]
     return out
 
 
-class PeerTrack:
-    """A peer's pass over a sequence: T_world_cam poses (N, 4, 4), per-frame times (ms), lost
-    frames and the first few failure messages."""
-
-    def __init__(self, first_pose: Pose) -> None:
-        self.poses: list[Pose] = [np.asarray(first_pose, np.float64)]
-        self.frame_ms: list[float] = []
-        self.decode_ms: list[float] = []
-        self.lost = 0
-        self.failures: list[str] = []
-
-
-def track_peer(peer: PeerTracker, seq: Any, n: int, first_pose: Pose) -> PeerTrack:
-    """Feed frames 0..n-1 of ``seq`` to ``peer`` and chain its motions from ``first_pose``.
-
-    Times each frame from ``decode_frame``'s arrays to the pose (``rectify_frame`` included).
-    A pair that fails (None, non-finite, or an exception) is a lost frame and repeats the
-    previous motion (identity before the first success)."""
-    track = PeerTrack(first_pose)
-    motion = np.eye(4)  # T_previous_current
-    for i in range(n):
-        t0 = time.perf_counter()
-        rgb_raw, depth_raw = seq.decode_frame(i)
-        t1 = time.perf_counter()
-        error = None
-        try:
-            rt = peer.step(*seq.rectify_frame(rgb_raw, depth_raw))
-        except Exception as err:  # a failing peer call is a lost frame, not a crash
-            rt, error = None, f"frame {i}: {type(err).__name__}: {err}"
-        t2 = time.perf_counter()
-        track.decode_ms.append((t1 - t0) * 1e3)
-        track.frame_ms.append((t2 - t1) * 1e3)
-        rt = None if rt is None else np.asarray(rt, np.float64)
-        if rt is not None and rt.shape == (4, 4) and bool(np.all(np.isfinite(rt))):
-            motion = np.linalg.inv(rt)
-        elif i > 0 or error is not None:  # frame 0 has no pair: None is expected there
-            track.lost += 1
-            if len(track.failures) < 5:
-                track.failures.append(error or f"frame {i}: no motion (false or non-finite)")
-        if i > 0:
-            track.poses.append(track.poses[-1] @ motion)
-    return track
+def _timing(prefix: str, stats: dict[str, float], keys: Sequence[str]) -> dict[str, float]:
+    return {f"{prefix}_{k}_ms": stats[k] for k in keys}
 
 
 def run_peer(method: str, seq: Any, max_frames: int | None = None) -> dict[str, Any]:
-    """Track ``seq`` frame to frame with the peer ``method`` from edgevo's first pose; the
-    result row, or ``{"missing": reason}``."""
-    from edgevo_jax.pipeline.run import initial_pose
-
+    """Track ``seq`` frame to frame with the peer ``method`` from edgevo's first pose
+    (``measure.run_peer``); the result row, or ``{"missing": reason}``."""
+    if method not in PEERS:
+        return {"missing": f"unknown method {method!r} (peers: {', '.join(PEERS)}; edgevo "
+                           "variants are named with --edgevo)"}
     baseline = _maxrss_mib()
     t0 = time.perf_counter()
     try:
-        peer = make_peer(method, seq.intrinsics, seq.width, seq.height)
+        track = measure.run_peer(method, seq, max_frames=max_frames)
     except PeerMissing as err:
         return {"missing": str(err)}
-    n = len(seq) if max_frames is None else min(len(seq), max_frames)
-    track = track_peer(peer, seq, n, initial_pose(seq))
     wall_s = time.perf_counter() - t0
-    warm = _warm(track.frame_ms)
+    n = len(track.frame_ms)
     out: dict[str, Any] = {
         "kind": "peer",
-        "api": peer.description,
+        "api": track.description,
         "frames": n,
         "lost": track.lost,
         **accuracy(seq, np.asarray(seq.timestamps[:n], np.float64),
                    np.asarray(track.poses).reshape(-1, 4, 4)),
         "first_frame_ms": track.frame_ms[1] if n > 1 else math.nan,
-        "warm_median_ms": _median(warm),
-        "warm_p90_ms": _p90(warm),
-        "warm_mean_ms": float(warm.mean()) if warm.size else math.nan,
-        "warm_max_ms": _max(warm),
+        **_timing("warm", frame_stats(track.frame_ms), ("median", "p90", "mean", "max")),
         "wall_s": wall_s,
-        "decode_median_ms": _median(track.decode_ms[WARMUP_FRAMES:]),
+        "decode_median_ms": frame_stats(track.decode_ms)["median"],
         "baseline_rss_mib": baseline,
     }
     if track.failures:
@@ -415,10 +198,10 @@ def run_edgevo(overrides: Sequence[str], seq: Any, max_frames: int | None = None
     except Exception as err:  # the first run's numbers stand; say why the second is absent
         again, compiled_error = None, f"{type(err).__name__}: {err}"
     compiled_wall_s = time.perf_counter() - t0 if again is not None else math.nan
-    compiled = _warm(again.frame_ms) if again is not None else np.zeros(0)
+    compiled = frame_stats(again.frame_ms if again is not None else [])
     stats = summarise(run, seq)
     n = len(run.results)
-    warm = _warm(run.frame_ms)
+    warm = frame_stats(run.frame_ms)
     pre = [r.preprocess_ms for r in run.results]
     solve = [r.solve_ms for r in run.results]
     # frame_ms[k] (the period in which frame k completes) holds the solve wait of frame k and
@@ -433,26 +216,20 @@ def run_edgevo(overrides: Sequence[str], seq: Any, max_frames: int | None = None
         "keyframes": int(stats["keyframes"]),
         **accuracy(seq, run.timestamps, run.poses),
         "first_frame_ms": run.startup_s * 1e3,
-        "warm_median_ms": _median(warm),
-        "warm_p90_ms": _p90(warm),
-        "warm_mean_ms": float(warm.mean()) if warm.size else math.nan,
-        "warm_max_ms": _max(warm),
+        **_timing("warm", warm, ("median", "p90", "mean", "max")),
         "wall_s": wall_s,
-        "compiled_median_ms": _median(compiled),
-        "compiled_mean_ms": float(compiled.mean()) if compiled.size else math.nan,
-        "compiled_p90_ms": _p90(compiled),
-        "compiled_max_ms": _max(compiled),
+        **_timing("compiled", compiled, ("median", "mean", "p90", "max")),
         "compiled_wall_s": compiled_wall_s,
         "repeat_identical": bool(np.array_equal(run.poses, again.poses))
         if again is not None else None,
         **({} if again is not None else {"compiled_error": compiled_error}),
         "peak_rss_mib": peak,
         "profile_ms": {
-            "frame": _median(warm),
-            "decode": _median(run.decode_ms[WARMUP_FRAMES:]),
-            "preprocess": _median(pre[WARMUP_FRAMES:]),
-            "solve_wait": _median(solve[WARMUP_FRAMES:]),
-            "host_other": _median(other),
+            "frame": warm["median"],
+            "decode": frame_stats(run.decode_ms)["median"],
+            "preprocess": frame_stats(pre)["median"],
+            "solve_wait": frame_stats(solve)["median"],
+            "host_other": frame_stats(other, skip=0)["median"],
             "selection_per_keyframe": _stat(stats, "select_ms"),
             "mapping_per_keyframe": _stat(stats, "mapping_ms"),
             "mapping_worker_per_keyframe": _stat(stats, "mapping_worker_ms"),
@@ -530,66 +307,50 @@ def add_ratios(rows: list[dict[str, Any]], reference: str = DEFAULT_EDGEVO) -> N
         r["ratio_to_edgevo"] = num / den if ok else math.nan
 
 
-def _fmt(v: Any, spec: str) -> str:
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return "n/a"
-    return format(v, spec)
+RESULT_HEAD = ("sequence", "method", "ATE RMSE (m)", "RPE (m/s)", "frames", "lost",
+               "first frame (ms)", "warm median (ms)", "warm p90 (ms)", "warm mean (ms)",
+               "compiled mean (ms)", "x edgevo", "warm max (ms)", "wall (s)",
+               "peak RSS (MiB)", "note")
+RESULT_CELLS = (("ate_rmse_m", ".4f"), ("rpe_m_per_s", ".4f"), ("frames", None),
+                ("lost", None), ("first_frame_ms", ".0f"), ("warm_median_ms", ".1f"),
+                ("warm_p90_ms", ".1f"), ("warm_mean_ms", ".1f"), ("compiled_mean_ms", ".1f"),
+                ("ratio_to_edgevo", ".2f"), ("warm_max_ms", ".1f"), ("wall_s", ".2f"),
+                ("peak_rss_mib", ".0f"))
+PROFILE_HEAD = ("sequence", "variant", "frame", "decode", "preprocess", "solve wait",
+                "host other", "selection / kf", "mapping / kf", "keyframes")
 
 
 def markdown_table(rows: list[dict[str, Any]]) -> str:
     """The results as a markdown table, one row per method and sequence."""
-    head = ("| sequence | method | ATE RMSE (m) | RPE (m/s) | frames | lost | first frame (ms) "
-            "| warm median (ms) | warm p90 (ms) | warm mean (ms) | compiled mean (ms) "
-            "| x edgevo | warm max (ms) | wall (s) | peak RSS (MiB) | note |")
-    lines = [head, "|" + "---|" * 16]
+    cells = []
     for r in rows:
         if "missing" in r or "error" in r:
             note = f"missing: {r['missing']}" if "missing" in r else f"error: {r['error']}"
-            cells = [r["sequence"], r["method"]] + ["-"] * 13 + [note.replace("|", "/")]
-        else:
-            cells = [
-                r["sequence"], r["method"], _fmt(r.get("ate_rmse_m"), ".4f"),
-                _fmt(r.get("rpe_m_per_s"), ".4f"), str(r.get("frames", "")),
-                str(r.get("lost", "")), _fmt(r.get("first_frame_ms"), ".0f"),
-                _fmt(r.get("warm_median_ms"), ".1f"), _fmt(r.get("warm_p90_ms"), ".1f"),
-                _fmt(r.get("warm_mean_ms"), ".1f"), _fmt(r.get("compiled_mean_ms"), ".1f"),
-                _fmt(r.get("ratio_to_edgevo"), ".2f"), _fmt(r.get("warm_max_ms"), ".1f"),
-                _fmt(r.get("wall_s"), ".2f"), _fmt(r.get("peak_rss_mib"), ".0f"),
-                "; ".join(filter(None, [
-                    "config: " + ";".join(r["config_overrides"])
-                    if r.get("config_overrides") else "",
-                    r.get("accuracy_note", "")])).replace("|", "/"),
-            ]
-        lines.append("| " + " | ".join(cells) + " |")
+            cells.append([r["sequence"], r["method"]] + ["-"] * 13 + [note.replace("|", "/")])
+            continue
+        note = "; ".join(filter(None, [
+            "config: " + ";".join(r["config_overrides"]) if r.get("config_overrides") else "",
+            r.get("accuracy_note", "")])).replace("|", "/")
+        cells.append([r["sequence"], r["method"]] + [
+            str(r.get(k, "")) if spec is None else fmt(r.get(k), spec)
+            for k, spec in RESULT_CELLS] + [note])
+    text = md_table(RESULT_HEAD, cells)
     base = [r["baseline_rss_mib"] for r in rows if r.get("baseline_rss_mib") is not None]
     if base:
-        lines.append(f"\nPeak RSS is the whole child process's: each starts at ~"
-                     f"{_median(base):.0f} MiB (edgevo_jax, JAX and OpenCV imported, sequence "
-                     "loaded) before the method's library and frames (baseline_rss_mib).")
-    return "\n".join(lines)
+        text += (f"\n\nPeak RSS is the whole child process's: each starts at ~"
+                 f"{float(np.median(base)):.0f} MiB (edgevo_jax, JAX and OpenCV imported, "
+                 "sequence loaded) before the method's library and frames (baseline_rss_mib).")
+    return text
 
 
 def profile_table(rows: list[dict[str, Any]]) -> str:
     """Per-stage medians of the edgevo variants (ms per warm frame)."""
-    lines = ["| sequence | variant | frame | decode | preprocess | solve wait | host other "
-             "| selection / kf | mapping / kf | keyframes |",
-             "|" + "---|" * 10]
-    for r in rows:
-        p = r.get("profile_ms")
-        if p is None:
-            continue
-        lines.append("| " + " | ".join([r["sequence"], r["method"]] + [
-            _fmt(p.get(k), ".1f")
-            for k in ("frame", "decode", "preprocess", "solve_wait", "host_other",
-                      "selection_per_keyframe", "mapping_per_keyframe")]
-            + [_fmt(100 * p.get("keyframe_share", math.nan), ".0f") + " %"]) + " |")
-    return "\n".join(lines) + f"\n\n{PROFILE_NOTE}."
-
-
-
-
-
-
+    keys = ("frame", "decode", "preprocess", "solve_wait", "host_other",
+            "selection_per_keyframe", "mapping_per_keyframe")
+    cells = [[r["sequence"], r["method"]] + [fmt(p.get(k), ".1f") for k in keys]
+             + [fmt(100 * p.get("keyframe_share", math.nan), ".0f") + " %"]
+             for r in rows if (p := r.get("profile_ms")) is not None]
+    return md_table(PROFILE_HEAD, cells) + f"\n\n{PROFILE_NOTE}."
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -629,9 +390,9 @@ def _progress(k: int, total: int, row: dict[str, Any], seconds: float) -> str:
         return f"{head}: missing ({row['missing']})"
     if "error" in row:
         return f"{head}: ERROR {row['error']}"
-    return (f"{head}: ATE {_fmt(row.get('ate_rmse_m'), '.4f')} m, warm "
-            f"{_fmt(row.get('warm_median_ms'), '.1f')} ms/frame, lost {row.get('lost')}, "
-            f"peak {_fmt(row.get('peak_rss_mib'), '.0f')} MiB ({seconds:.1f} s)")
+    return (f"{head}: ATE {fmt(row.get('ate_rmse_m'), '.4f')} m, warm "
+            f"{fmt(row.get('warm_median_ms'), '.1f')} ms/frame, lost {row.get('lost')}, "
+            f"peak {fmt(row.get('peak_rss_mib'), '.0f')} MiB ({seconds:.1f} s)")
 
 
 def _cv2_odometry() -> bool | None:
@@ -700,11 +461,8 @@ def main(argv: list[str] | None = None,
         },
         "results": rows,
     }
-    for path, text in ((args.out_json, json.dumps(json_safe(report), indent=2) + "\n"),
-                       (args.out_md, f"{md}\n\nedgevo per-stage profile (median ms)\n\n"
-                                     f"{prof}\n")):
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(text)
+    write_json(args.out_json, report)
+    write_text(args.out_md, f"{md}\n\nedgevo per-stage profile (median ms)\n\n{prof}\n")
     print(md)
     print("\nedgevo per-stage profile (median ms per warm frame)\n")
     print(prof)

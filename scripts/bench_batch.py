@@ -25,7 +25,6 @@ reports the largest position difference from its batch run (m).
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import sys
 import time
@@ -36,9 +35,9 @@ import numpy as np
 
 from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets import load_sequence
-from edgevo_jax.io import json_safe
 from edgevo_jax.pipeline import batch
 from edgevo_jax.pipeline.run import run_sequence, summarise
+from edgevo_jax.reports import write_json, write_text
 
 DEFAULT_SEQ = (Path(__file__).resolve().parents[2] / "shared" / "data" / "tum"
                / "rgbd_dataset_freiburg3_teddy_first200")
@@ -136,10 +135,8 @@ def main(argv: list[str] | None = None) -> int:
                      + (f" {r['max_diff_alone_m']:.1e} |" if args.check else ""))
     text = "\n".join(lines) + "\n"
     print(text)
-    for path, body in [(args.out_json, json.dumps(json_safe(out), indent=2) + "\n"),
-                       (args.out_md, text)]:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(body)
+    write_json(args.out_json, out)
+    write_text(args.out_md, text)
     return 0
 
 

@@ -65,7 +65,6 @@ W. Burgard, D. Cremers, "A Benchmark for the Evaluation of RGB-D SLAM Systems", 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -77,14 +76,13 @@ import numpy as np
 
 from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.camera import Intrinsics
-from edgevo_jax.datasets import groundtruth_pose_at, load_sequence, subsequence
+from edgevo_jax.datasets import subsequence
 from edgevo_jax.datasets.tum import SHARED_TUM
 from edgevo_jax.frontend.robust import FEATURES, weighting_features, weighting_scale
 from edgevo_jax.frontend.selection import KeyframeEdges, keyframe_edges
 from edgevo_jax.geometry import Pose, inverse_np
 from edgevo_jax.image.interp import stack_edge_maps
 from edgevo_jax.image.preprocess import preprocess
-from edgevo_jax.io import json_safe, poses7_to_matrices
 from edgevo_jax.learn import (
     Smoothing,
     edge_magnitudes,
@@ -95,7 +93,10 @@ from edgevo_jax.learn import (
     window_rpe_loss,
 )
 from edgevo_jax.learn.params import Params, params_to_dict, weighting_of
+from edgevo_jax.pipeline.measure import groundtruth_at, load_clip
 from edgevo_jax.pipeline.run import run_sequence, summarise
+from edgevo_jax.reports import write_json
+from edgevo_jax.viz._canvas import figure, save
 
 DEFAULT_SEQ = SHARED_TUM / "rgbd_dataset_freiburg3_teddy_first200"
 GT_MAX_GAP = 0.02  # s between the ground-truth samples around a frame
@@ -185,12 +186,10 @@ class Part(NamedTuple):
 
 def make_part(seq, index: int, frames: tuple[int, int]) -> Part:
     a, b = max(0, frames[0]), min(frames[1], len(seq))
-    gt = {}
-    for f in range(a, b):
-        p = groundtruth_pose_at(seq, float(seq.timestamps[f]), GT_MAX_GAP, interpolate=True)
-        if p is not None:
-            gt[f] = poses7_to_matrices(p[None])[0]
-    return Part(seq, index, (a, b), gt)
+    poses = groundtruth_at(seq, seq.timestamps[a:b], max_diff=GT_MAX_GAP,
+                           interpolate=True)
+    return Part(seq, index, (a, b), {a + k: T for k, T in enumerate(poses)
+                                     if np.isfinite(T).all()})
 
 
 def build_data(seqs: list, frames: list[tuple[int, int]], keyframes: list[tuple[int, int]],
@@ -383,18 +382,9 @@ def control_runs(parts: list[Part], config: Config, params0: Params, fitted: Par
             "note": "default Params moved along random directions by the fit's step norm"}
 
 
-def _figure(width: float, height: float):
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(width, height), dpi=80)
-    FigureCanvasAgg(fig)
-    return fig
-
-
 def save_plot(losses: list[float], full: list[float], path: Path, title: str,
               what: str) -> None:
-    fig = _figure(5, 3)
+    fig = figure((5, 3), dpi=80)
     ax = fig.add_subplot(1, 1, 1)
     ax.plot(np.arange(len(losses)), losses, marker="o", markersize=2, lw=0.8, alpha=0.6,
             label="minibatch (before its step)")
@@ -405,8 +395,7 @@ def save_plot(losses: list[float], full: list[float], path: Path, title: str,
     ax.set_title(title, fontsize=9)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
+    save(fig, path, dpi=80)
 
 
 def weight_curves(params: Params, config: Config, data: dict, points: int = 41) -> dict:
@@ -436,7 +425,7 @@ def weight_curves(params: Params, config: Config, data: dict, points: int = 41) 
 
 
 def save_weights_plot(curves: dict, path: Path, title: str) -> None:
-    fig = _figure(9, 5)
+    fig = figure((9, 5), dpi=80)
     labels = {"gradient magnitude": "log(m / canny_high)", "depth": "log depth (m)",
               "depth discontinuity": "log(1 + 10 (max - min) / z)",
               "residual": "residual / gate", "level": "level / (L - 1)",
@@ -451,8 +440,7 @@ def save_weights_plot(curves: dict, path: Path, title: str) -> None:
         ax.grid(alpha=0.3)
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
+    save(fig, path, dpi=80)
 
 
 def load_all(paths: list[Path], frame_step: int = 1) -> list | str:
@@ -463,7 +451,7 @@ def load_all(paths: list[Path], frame_step: int = 1) -> list | str:
         if not path.is_dir():
             return (f"sequence folder not found: {path} (the fr3_teddy_first200 clip lives in "
                     f"{SHARED_TUM}; pass another TUM folder as the first argument)")
-        seq = load_sequence(path, frame_step=frame_step)
+        seq = load_clip(path, frame_step=frame_step)
         if seq.groundtruth is None:
             return f"{seq.name} has no groundtruth.txt: nothing to fit against"
         seqs.append(seq)
@@ -668,8 +656,7 @@ def main(argv: list[str] | None = None) -> int:
             "backend": jax.default_backend(), "device": str(jax.devices()[0]),
         },
     }
-    args.out_json.parent.mkdir(parents=True, exist_ok=True)
-    args.out_json.write_text(json.dumps(json_safe(report), indent=2) + "\n")
+    write_json(args.out_json, report)
     save_plot(losses, full, args.out_png,
               f"{names}: {n_train} {items_name}, batch {batch}, lr {args.lr}", items_name)
     save_weights_plot(curves, args.out_weights_png,

@@ -19,23 +19,23 @@ frames; ``--max-frames`` keeps the frames up to the full sequence's frame N) and
   ``--set`` overrides but for the selection seed: one run per ``--seeds`` seed; the first
   run of the process is preceded by an untimed warm-up run on ``--warmup-frames`` frames,
   so that every timed run finds the tracker's and the window's programs compiled), and
-- by each ``--peers`` method of ``scripts/bench.py`` (its ``make_peer`` and ``track_peer``:
-  frame to frame from edgevo's first pose; deterministic, so one run per k).
+- by each ``--peers`` method (``edgevo_jax.peers``, as in ``scripts/bench.py``: frame to
+  frame from edgevo's first pose; deterministic, so one run per k).
 
 Per run: ATE RMSE (m, ``metrics.ate``), RPE (``metrics.rpe_per_second`` over 1 s: m/s and
-deg/s; null when the clip spans under 1 s), the frames per state (edgevo: OK / WEAK / LOST; peers: a
-pair whose ``compute`` fails is LOST, every other frame OK), the **silently diverged**
-frames (:func:`diverged_frames`) and the mean / median ms per frame over warm frames (the
-first two skipped; image decoding excluded, as in bench.py). Per (sequence, method, k) over
-the seeds: mean, min and max ATE and max / min. Writes JSON (with machine information and
-the command line), a markdown table and a plot of ATE against the frame step (skipped with a
-note when matplotlib is missing); prints one progress line per run and the table.
+deg/s; null when the clip spans under 1 s), the frames per state (edgevo: OK / WEAK / LOST;
+peers: a pair whose ``compute`` fails is LOST, every other frame OK), the **silently
+diverged** frames (``measure.diverged_frames``) and the mean / median ms per frame over
+warm frames (the first two skipped; image decoding excluded, as in bench.py). Per
+(sequence, method, k) over the seeds: mean, min and max ATE and max / min. Writes JSON (with
+machine information and the command line), a markdown table and a plot of ATE against the
+frame step (skipped with a note when matplotlib is missing); prints one progress line per run
+and the table.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import shlex
@@ -46,26 +46,32 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import bench  # scripts/bench.py: scripts/ is sys.path[0] when this script runs
 import numpy as np
 
 from edgevo_jax import Config, enable_batch_exact
-from edgevo_jax.datasets import groundtruth_pose_at, load_sequence, subsequence
 from edgevo_jax.datasets.tum import SHARED_TUM, EmptyDepthWarning, TumSequence
-from edgevo_jax.geometry import inverse_np, rotation_angle_np
-from edgevo_jax.io import json_safe, matrices_to_poses7, poses7_to_matrices
-from edgevo_jax.metrics import ate, rpe_per_second
+from edgevo_jax.peers import PEERS, PeerMissing
+from edgevo_jax.pipeline import measure
+from edgevo_jax.pipeline.measure import (
+    DIVERGED_ROT_DEG,
+    DIVERGED_TRANS_M,
+    GT_MAX_DIFF_S,
+    WARMUP_FRAMES,
+    accuracy,
+    diverged_frames,
+    finite_stats,
+    frame_stats,
+    groundtruth_at,
+    load_clip,
+)
 from edgevo_jax.provenance import machine_info
+from edgevo_jax.reports import fmt, int_list, markdown_table, write_json, write_text
 
 DEFAULT_SEQUENCE = SHARED_TUM / "rgbd_dataset_freiburg3_teddy_first200"
 DEFAULT_OUT = Path("docs/robustness")
 DEFAULT_PEERS = ("cv2_rgb", "cv2_rgbd")
 EDGEVO = "edgevo"
 STATES = ("OK", "WEAK", "LOST")
-DIVERGED_TRANS_M = 0.05
-DIVERGED_ROT_DEG = 3.0
-GT_MAX_DIFF_S = 0.02  # as the ATE's association
-WARM_SKIP = bench.WARMUP_FRAMES  # frame 0 sets up, frame 1 is the first pair
 DIVERGED_NOTE = (
     "diverged: frames the method called OK, following a frame it also called OK, whose "
     f"motion from that frame differs from the ground truth's over the same timestamps by more "
@@ -74,127 +80,32 @@ DIVERGED_NOTE = (
 )
 
 
-# --------------------------------------------------------------------------------------------
-# the per-run core: pure functions of poses, states, timestamps and ground truth
-
-
-def parse_int_list(spec: str) -> list[int]:
-    """``"0-4"``, ``"0,1,2"`` or a mix (``"0-2,5"``) -> the integers in order, duplicates
-    dropped. ValueError for an empty list, a malformed item or a decreasing range."""
-    out: list[int] = []
-    for item in (s.strip() for s in spec.split(",")):
-        if not item:
-            continue
-        lo, sep, hi = item.partition("-")
-        try:
-            a, b = (int(lo), int(hi)) if sep else (int(item), int(item))
-        except ValueError:
-            raise ValueError(f"expected integers like 0-4 or 0,1,2, got {spec!r}") from None
-        if b < a:
-            raise ValueError(f"decreasing range {item!r} in {spec!r}")
-        out.extend(v for v in range(a, b + 1) if v not in out)
-    if not out:
-        raise ValueError(f"no integers in {spec!r}")
-    return out
-
-
-def groundtruth_at(seq: TumSequence, timestamps: np.ndarray,
-                   max_diff: float = GT_MAX_DIFF_S) -> np.ndarray:
-    """Ground-truth T_world_cam (N, 4, 4) at each timestamp: the pose nearest in time
-    (``datasets.groundtruth_pose_at``), all NaN where none lies within ``max_diff`` s or the
-    sequence has no ground truth."""
-    out = np.full((len(timestamps), 4, 4), np.nan)
-    for i, t in enumerate(np.asarray(timestamps, np.float64)):
-        pose7 = groundtruth_pose_at(seq, float(t), max_diff)
-        if pose7 is not None:
-            out[i] = poses7_to_matrices(np.asarray(pose7)[None])[0]
-    return out
-
-
-def motion_errors(poses: np.ndarray, gt_poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For each frame i >= 1, the error of the estimated motion from frame i-1 against the
-    ground truth's: E = (G_{i-1}^-1 G_i)^-1 (P_{i-1}^-1 P_i); returns (|trans(E)| in m,
-    angle(E) in degrees), each of length N - 1 (NaN where a ground-truth pose is NaN)."""
-    p = np.asarray(poses, np.float64)
-    g = np.asarray(gt_poses, np.float64)
-    if p.shape != g.shape or p.ndim != 3 or p.shape[1:] != (4, 4):
-        raise ValueError(f"poses {p.shape} and gt_poses {g.shape} must both be (N, 4, 4)")
-    if p.shape[0] < 2:
-        return np.zeros(0), np.zeros(0)
-    rel_est = inverse_np(p[:-1]) @ p[1:]
-    rel_gt = inverse_np(g[:-1]) @ g[1:]
-    e = inverse_np(rel_gt) @ rel_est
-    trans = np.linalg.norm(e[:, :3, 3], axis=-1)
-    rot = np.degrees(np.asarray(rotation_angle_np(e), np.float64).reshape(-1))
-    return trans, rot
-
-
-def diverged_frames(poses: np.ndarray, states: Sequence[str], gt_poses: np.ndarray, *,
-                    trans_m: float = DIVERGED_TRANS_M, rot_deg: float = DIVERGED_ROT_DEG
-                    ) -> list[int]:
-    """Indices of the silently diverged frames of a run.
-
-    ``poses`` (N, 4, 4) are the run's T_world_cam in frame order, ``states`` its N states
-    (``"OK"``, ``"WEAK"``, ``"LOST"``) and ``gt_poses`` (N, 4, 4) the ground truth at the
-    same frames' timestamps (NaN where unknown: :func:`groundtruth_at`). Frame i >= 1 is
-    diverged when it and the frame before it (the previous frame the method tracked) are
-    both OK and its motion from that frame differs from the ground truth's motion between
-    the same timestamps by more than ``trans_m`` metres or ``rot_deg`` degrees. A motion into
-    or out of a WEAK or LOST frame is not judged: the method flagged it, so any jump there
-    is not silent. Frames without ground truth on either side are not judged."""
-    if len(states) != len(poses):
-        raise ValueError(f"{len(states)} states for {len(poses)} poses")
-    trans, rot = motion_errors(poses, gt_poses)
-    out = []
-    for i in range(1, len(states)):
-        if states[i] != "OK" or states[i - 1] != "OK":
-            continue
-        t, r = trans[i - 1], rot[i - 1]
-        if math.isfinite(t) and math.isfinite(r) and (t > trans_m or r > rot_deg):
-            out.append(i)
-    return out
-
-
 def score_run(timestamps: np.ndarray, poses: np.ndarray, states: Sequence[str],
               frame_ms: Sequence[float], groundtruth: tuple[np.ndarray, np.ndarray] | None,
               gt_poses: np.ndarray) -> dict[str, Any]:
     """The measurements of one run (timestamps (N,), T_world_cam poses (N, 4, 4), states,
     per-frame ms) against the ground truth trajectory ``(gt_t, gt_poses7)`` and
-    ``gt_poses`` at the frames (:func:`groundtruth_at`): ATE RMSE (m), RPE over 1 s
-    (``rpe_m_per_s``, ``rpe_deg_per_s``; NaN when the clip spans under 1 s), counts per state,
-    the diverged frames (:func:`diverged_frames`) and the warm mean / median ms per frame
-    (the first ``WARM_SKIP`` frames skipped). Accuracy fields are NaN without ground truth,
-    with an ``accuracy_note`` saying why."""
-    ts = np.asarray(timestamps, np.float64)
+    ``gt_poses`` at the frames (``measure.groundtruth_at``): ATE RMSE (m), RPE over 1 s
+    (``measure.accuracy``), counts per state, the diverged frames
+    (``measure.diverged_frames``) and the warm mean / median ms per frame (the first
+    ``WARMUP_FRAMES`` frames skipped)."""
     counts = Counter(states)
     unknown = set(counts) - set(STATES)
     if unknown:
         raise ValueError(f"unknown states {sorted(unknown)} (expected {STATES})")
-    warm = np.asarray(frame_ms[WARM_SKIP:], np.float64)
     div = diverged_frames(poses, states, gt_poses)
+    acc = accuracy(groundtruth, timestamps, poses)
+    warm = frame_stats(frame_ms)
     out: dict[str, Any] = {
         "frames": len(states),
         **{s.lower(): int(counts.get(s, 0)) for s in STATES},
         "diverged": len(div),
         "diverged_frames": div,
-        "ate_rmse_m": math.nan, "rpe_m_per_s": math.nan, "rpe_deg_per_s": math.nan,
-        "mean_ms": float(warm.mean()) if warm.size else math.nan,
-        "median_ms": float(np.median(warm)) if warm.size else math.nan,
+        **{k: acc[k] for k in ("ate_rmse_m", "rpe_m_per_s", "rpe_deg_per_s")},
+        "mean_ms": warm["mean"], "median_ms": warm["median"],
     }
-    if groundtruth is None:
-        out["accuracy_note"] = "no ground truth"
-        return out
-    est = matrices_to_poses7(np.asarray(poses, np.float64))
-    try:
-        out["ate_rmse_m"] = float(ate(groundtruth, (ts, est))["rmse"])
-        if ts.size and ts[-1] - ts[0] >= 1.0:
-            r = rpe_per_second(groundtruth, (ts, est))
-            out["rpe_m_per_s"] = float(r["trans_rmse_m_per_s"])
-            out["rpe_deg_per_s"] = float(r["rot_rmse_deg_per_s"])
-        else:
-            out["accuracy_note"] = "RPE n/a: clip shorter than 1 s"
-    except ValueError as err:  # e.g. fewer than 3 poses associated with the ground truth
-        out["accuracy_note"] = str(err)
+    if "accuracy_note" in acc:
+        out["accuracy_note"] = acc["accuracy_note"]
     return out
 
 
@@ -209,95 +120,59 @@ def aggregate(runs: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
             groups.setdefault((r["sequence"], r["method"], r["step"]), []).append(r)
     rows = []
     for (seq, method, step), rs in groups.items():
-        ates = np.array([r["ate_rmse_m"] for r in rs], np.float64)
-        ok = ates[np.isfinite(ates)]
-
-        def mean(key: str, rs: list[dict[str, Any]] = rs) -> float:
-            v = np.array([r[key] for r in rs], np.float64)
-            v = v[np.isfinite(v)]
-            return float(v.mean()) if v.size else math.nan
-
+        ate = finite_stats([r["ate_rmse_m"] for r in rs])
+        mean = {k: finite_stats([r[k] for r in rs])["mean"] for k in (
+            "rpe_m_per_s", "rpe_deg_per_s", "diverged", "weak", "lost", "mean_ms")}
         rows.append({
             "sequence": seq, "method": method, "step": step, "runs": len(rs),
             "seeds": [r["seed"] for r in rs if r.get("seed") is not None],
             "frames": rs[0]["frames"],
-            "ate_mean_m": float(ok.mean()) if ok.size else math.nan,
-            "ate_min_m": float(ok.min()) if ok.size else math.nan,
-            "ate_max_m": float(ok.max()) if ok.size else math.nan,
-            "ate_max_over_min": float(ok.max() / ok.min()) if ok.size and ok.min() > 0
-            else math.nan,
-            "rpe_m_per_s_mean": mean("rpe_m_per_s"),
-            "rpe_deg_per_s_mean": mean("rpe_deg_per_s"),
-            "diverged_mean": mean("diverged"), "diverged_max": max(r["diverged"] for r in rs),
-            "weak_mean": mean("weak"), "lost_mean": mean("lost"),
+            "ate_mean_m": ate["mean"], "ate_min_m": ate["min"], "ate_max_m": ate["max"],
+            "ate_max_over_min": ate["max"] / ate["min"] if ate["min"] > 0 else math.nan,
+            "rpe_m_per_s_mean": mean["rpe_m_per_s"],
+            "rpe_deg_per_s_mean": mean["rpe_deg_per_s"],
+            "diverged_mean": mean["diverged"], "diverged_max": max(r["diverged"] for r in rs),
+            "weak_mean": mean["weak"], "lost_mean": mean["lost"],
             "median_ms": float(np.median([r["median_ms"] for r in rs])),
-            "mean_ms": mean("mean_ms"),
+            "mean_ms": mean["mean_ms"],
         })
     return rows
 
 
-def _fmt(v: Any, spec: str) -> str:
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return "n/a"
-    return format(v, spec)
+TABLE_HEAD = ("sequence", "method", "step k", "frames", "runs", "ATE mean (mm)", "min", "max",
+              "max/min", "RPE (mm/s)", "RPE (deg/s)", "diverged / run (max)", "weak / run",
+              "lost / run", "ms median", "ms mean")
 
 
-def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
+def table(rows: Sequence[dict[str, Any]]) -> str:
     """The aggregate rows as a markdown table."""
-    lines = ["| sequence | method | step k | frames | runs | ATE mean (mm) | min | max "
-             "| max/min | RPE (mm/s) | RPE (deg/s) | diverged / run (max) | weak / run "
-             "| lost / run | ms median | ms mean |", "|" + "---|" * 16]
-    for r in rows:
-        lines.append("| " + " | ".join([
-            r["sequence"], r["method"], str(r["step"]), str(r["frames"]), str(r["runs"]),
-            _fmt(1e3 * r["ate_mean_m"], ".2f"), _fmt(1e3 * r["ate_min_m"], ".2f"),
-            _fmt(1e3 * r["ate_max_m"], ".2f"), _fmt(r["ate_max_over_min"], ".2f"),
-            _fmt(1e3 * r["rpe_m_per_s_mean"], ".1f"), _fmt(r["rpe_deg_per_s_mean"], ".2f"),
-            f"{_fmt(r['diverged_mean'], '.1f')} ({r['diverged_max']})",
-            _fmt(r["weak_mean"], ".1f"), _fmt(r["lost_mean"], ".1f"),
-            _fmt(r["median_ms"], ".1f"), _fmt(r["mean_ms"], ".1f")]) + " |")
-    return "\n".join(lines)
+    return markdown_table(TABLE_HEAD, [[
+        r["sequence"], r["method"], str(r["step"]), str(r["frames"]), str(r["runs"]),
+        fmt(1e3 * r["ate_mean_m"], ".2f"), fmt(1e3 * r["ate_min_m"], ".2f"),
+        fmt(1e3 * r["ate_max_m"], ".2f"), fmt(r["ate_max_over_min"], ".2f"),
+        fmt(1e3 * r["rpe_m_per_s_mean"], ".1f"), fmt(r["rpe_deg_per_s_mean"], ".2f"),
+        f"{fmt(r['diverged_mean'], '.1f')} ({r['diverged_max']})",
+        fmt(r["weak_mean"], ".1f"), fmt(r["lost_mean"], ".1f"),
+        fmt(r["median_ms"], ".1f"), fmt(r["mean_ms"], ".1f")] for r in rows])
 
 
 # --------------------------------------------------------------------------------------------
 # running (the tracker and the peers)
 
 
-class _RecordingPeer:
-    """A bench.py peer that also records, per frame after the first, whether it returned a
-    usable motion (what ``bench.track_peer`` counts as not lost)."""
-
-    def __init__(self, peer: bench.PeerTracker) -> None:
-        self._peer = peer
-        self.description = peer.description
-        self.usable: list[bool] = []
-
-    def step(self, rgb: np.ndarray, depth: np.ndarray) -> np.ndarray | None:
-        """The wrapped peer's ``step``; records the outcome (an exception: not usable)."""
-        self.usable.append(False)
-        rt = self._peer.step(rgb, depth)
-        if rt is not None:
-            m = np.asarray(rt, np.float64)
-            self.usable[-1] = m.shape == (4, 4) and bool(np.all(np.isfinite(m)))
-        return rt
-
-
 def run_peer(method: str, seq: TumSequence) -> dict[str, Any]:
-    """Track ``seq`` with the bench.py peer ``method``; frame 0 and every frame with a usable
-    motion are OK, the others LOST (their pose repeats the previous motion). Returns the
-    scored run, or ``{"missing": reason}``."""
-    from edgevo_jax.pipeline.run import initial_pose
-
+    """Track ``seq`` with the peer ``method`` (``measure.run_peer``); frame 0 and every frame
+    with a usable motion are OK, the others LOST (their pose repeats the previous motion).
+    Returns the scored run, or ``{"missing": reason}``."""
     try:
-        peer = _RecordingPeer(bench.make_peer(method, seq.intrinsics, seq.width, seq.height))
-    except bench.PeerMissing as err:
+        track = measure.run_peer(method, seq)
+    except PeerMissing as err:
         return {"missing": str(err)}
-    track = bench.track_peer(peer, seq, len(seq), initial_pose(seq))
-    states = ["OK"] + ["OK" if u else "LOST" for u in peer.usable[1:]]
     ts = np.asarray(seq.timestamps, np.float64)
     poses = np.asarray(track.poses).reshape(-1, 4, 4)
-    out = score_run(ts, poses, states, track.frame_ms, seq.groundtruth, groundtruth_at(seq, ts))
-    out["api"] = peer.description
+    out = score_run(ts, poses, track.states, track.frame_ms, seq.groundtruth,
+                    groundtruth_at(seq, ts))
+    out["api"] = track.description
     if track.failures:
         out["failures"] = track.failures
     return out
@@ -335,9 +210,9 @@ def _progress(run: dict[str, Any]) -> str:
         return f"{run['sequence']} k={run['step']} {run['method']}: missing ({run['missing']})"
     seed = f" seed {run['seed']}" if run.get("seed") is not None else ""
     return (f"{run['sequence']} k={run['step']} {run['method']}{seed}: "
-            f"ATE {_fmt(1e3 * run['ate_rmse_m'], '.2f')} mm, {run['frames']} frames, "
+            f"ATE {fmt(1e3 * run['ate_rmse_m'], '.2f')} mm, {run['frames']} frames, "
             f"weak {run['weak']}, lost {run['lost']}, diverged {run['diverged']}, "
-            f"{_fmt(run['median_ms'], '.1f')} ms median")
+            f"{fmt(run['median_ms'], '.1f')} ms median")
 
 
 def plot(rows: Sequence[dict[str, Any]], path: Path) -> Path | None:
@@ -385,17 +260,12 @@ def run_all(seq_dirs: Sequence[Path], steps: Sequence[int], seeds: Sequence[int]
     runs: list[dict[str, Any]] = []
     warmed = False
     for seq_dir in seq_dirs:
-        full = load_sequence(seq_dir)
-        if max_frames is not None:
-            full = subsequence(full, 0, max_frames)
+        full = load_clip(seq_dir, max_frames=max_frames)
         if not warmed:
             warm_up(full, warmup_frames, config)
             warmed = True
-        for k in steps:
-            seq = load_sequence(seq_dir, frame_step=k)
-            if max_frames is not None:  # the same span of time as the full sequence's cut
-                t_end = full.timestamps[-1]
-                seq = subsequence(seq, 0, int(np.searchsorted(seq.timestamps, t_end, "right")))
+        for k in steps:  # each over the same span of time as the full sequence's cut
+            seq = load_clip(seq_dir, frame_step=k, max_frames=max_frames)
             base = {"sequence": full.name, "step": k, "path": str(seq_dir)}
             jobs: list[tuple[str, int | None]] = [(EDGEVO, s) for s in seeds]
             jobs += [(p, None) for p in peers]
@@ -415,7 +285,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", default="1,2,3,5", help="frame steps k (default 1,2,3,5)")
     p.add_argument("--seeds", default="0-4", help="edgevo selection seeds (0-4 or 0,1,2)")
     p.add_argument("--peers", default=",".join(DEFAULT_PEERS),
-                   help=f"bench.py peers, comma-separated, '' for none ({', '.join(bench.PEERS)})")
+                   help=f"peers (as bench.py's), comma-separated, '' for none ({', '.join(PEERS)})")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a Config field of edgevo's runs (repeatable)")
     p.add_argument("--max-frames", type=int, default=None,
@@ -433,16 +303,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     enable_batch_exact()  # before any JAX computation
     argv = list(sys.argv[1:] if argv is None else argv)
     args = _parser().parse_args(argv)
-    steps = parse_int_list(args.steps)
+    steps = int_list(args.steps)
     if min(steps) < 1:
         raise SystemExit(f"--steps must be positive, got {args.steps!r}")
-    seeds = parse_int_list(args.seeds)
+    seeds = int_list(args.seeds)
     peers = [p.strip() for p in args.peers.split(",") if p.strip()]
     seq_dirs = args.sequences or [DEFAULT_SEQUENCE]
     base = Config().with_overrides(args.set)
     runs = run_all(seq_dirs, steps, seeds, peers, args.max_frames, args.warmup_frames, base)
     rows = aggregate(runs)
-    table = markdown_table(rows)
+    text = table(rows)
     command = shlex.join(["python", os.path.relpath(__file__), *argv])
     missing = {f"{r['method']}": r["missing"] for r in runs if "missing" in r}
     result = {
@@ -450,21 +320,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         "peers": peers, "max_frames": args.max_frames, "warmup_frames": args.warmup_frames,
         "thresholds": {"diverged_trans_m": DIVERGED_TRANS_M, "diverged_rot_deg":
                        DIVERGED_ROT_DEG, "groundtruth_max_diff_s": GT_MAX_DIFF_S},
-        "notes": [DIVERGED_NOTE, f"ms: warm frames (the first {WARM_SKIP} skipped), image "
+        "notes": [DIVERGED_NOTE, f"ms: warm frames (the first {WARMUP_FRAMES} skipped), image "
                   "decoding excluded; peers: a failed pair is a LOST frame"],
         "missing": missing, "aggregates": rows, "runs": runs,
     }
-    args.out_json.parent.mkdir(parents=True, exist_ok=True)
-    args.out_json.write_text(json.dumps(json_safe(result), indent=1) + "\n")
-    md = (f"# Robustness: frame-rate sweep\n\n`{command}`\n\n{table}\n\n{DIVERGED_NOTE}. "
+    write_json(args.out_json, result, indent=1)
+    md = (f"# Robustness: frame-rate sweep\n\n`{command}`\n\n{text}\n\n{DIVERGED_NOTE}. "
           f"ms: warm frames, decoding excluded. Machine: {result['machine'].get('platform')}, "
           f"{result['machine'].get('cpus_usable')} CPUs, {result['machine'].get('date')}.\n")
     if missing:
         md += "".join(f"\nmissing: {m}: {why}" for m, why in missing.items()) + "\n"
-    args.out_md.parent.mkdir(parents=True, exist_ok=True)
-    args.out_md.write_text(md)
+    write_text(args.out_md, md)
     png = plot(rows, args.out_png)
-    print(table)
+    print(text)
     print(f"\nwrote {args.out_json}, {args.out_md}" + (f", {png}" if png else ""))
     return 0
 

@@ -1,4 +1,5 @@
-"""scripts/bench.py: one peer on the bundled clip in-process, missing peers, tables and JSON."""
+"""scripts/bench.py: one peer and edgevo on the bundled clip in-process, missing peers, tables
+and JSON (the peers themselves: tests/test_peers.py)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,6 @@ import math
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from edgevo_jax.cli import BUNDLED_CLIP
@@ -88,14 +88,6 @@ def test_missing_library_is_reported_missing(bench, monkeypatch):
     assert row["missing"].startswith("cannot import open3d"), row
 
 
-def test_opencv_without_odometry_is_reported_missing(bench, monkeypatch):
-    cv2 = pytest.importorskip("cv2")
-    if hasattr(cv2, "Odometry"):
-        monkeypatch.delattr(cv2, "Odometry")
-    with pytest.raises(bench.PeerMissing, match="no cv2.Odometry"):
-        bench.make_peer("cv2_depth", (500.0, 500.0, 320.0, 240.0), 640, 480)
-
-
 def test_variants_are_checked(bench):
     assert bench.parse_variant("edgevo_fast=max_depth=4.0; min_inliers=20") == (
         "edgevo_fast", ["max_depth=4.0", "min_inliers=20"])
@@ -134,34 +126,3 @@ def test_absent_default_clips_are_a_clear_error(bench, monkeypatch, tmp_path, ca
     monkeypatch.setattr(bench, "SHARED_TUM", tmp_path / "nowhere")
     assert bench.main(["--out-json", str(tmp_path / "b.json")]) == 2
     assert "default TUM clips not found" in capsys.readouterr().err
-
-
-def test_failed_pairs_are_lost_frames_with_constant_velocity(bench):
-    """Rt is T_current_previous; failures (None, non-finite, exceptions) repeat the last
-    motion and are counted."""
-    from edgevo_jax.datasets import load_sequence
-
-    step = np.eye(4)
-    step[:3, 3] = [0.0, 0.0, -0.01]  # the camera moves 1 cm along +z per frame
-
-    class Scripted:
-        description = "scripted"
-
-        def __init__(self):
-            self.calls = 0
-
-        def step(self, rgb, depth):
-            self.calls += 1
-            outcome = [None, step, None, np.full((4, 4), np.nan), "raise", step][self.calls - 1]
-            if isinstance(outcome, str):
-                raise RuntimeError("boom")
-            return outcome
-
-    seq = load_sequence(BUNDLED_CLIP)
-    first = np.eye(4)
-    first[:3, 3] = [1.0, 2.0, 3.0]
-    track = bench.track_peer(Scripted(), seq, 6, first)
-    assert track.lost == 3 and len(track.frame_ms) == 6
-    assert "RuntimeError: boom" in track.failures[-1]
-    z = np.array([p[2, 3] for p in track.poses])
-    np.testing.assert_allclose(z, 3.0 + 0.01 * np.arange(6))

@@ -14,10 +14,10 @@ from pathlib import Path
 PKG = Path(__file__).resolve().parents[1] / "edgevo_jax"
 
 #: top to bottom: each part may import only from parts after it
-LAYERS = ["cli", "__init__", "viz", "pipeline", "learn", "backend", "frontend", "image",
-          "datasets", "derive", "solvers", "metrics", "io", "geometry", "_quaternion",
-          "camera_file", "depth_registration", "camera", "config",
-          "programs", "determinism", "hostmem", "provenance"]
+LAYERS = ["cli", "__init__", "viz", "pipeline", "peers", "learn", "backend", "frontend",
+          "image", "datasets", "derive", "solvers", "metrics", "reports", "io", "geometry",
+          "_quaternion", "camera_file", "depth_registration", "camera", "config", "programs",
+          "determinism", "hostmem", "provenance"]
 
 
 def _part(module: list[str]) -> str:

@@ -9,7 +9,7 @@ import json
 import math
 
 import pytest
-from conftest import SCRIPTS, load_script
+from conftest import load_script
 
 from edgevo_jax.cli import BUNDLED_CLIP
 
@@ -107,18 +107,4 @@ def test_learn_weights_missing_sequence(tmp_path, capsys):
     rc = load_script("learn_weights").main([str(tmp_path / "nowhere"), "--out-json",
                               str(tmp_path / "x.json"), "--out-png", str(tmp_path / "x.png")])
     assert rc == 2 and "sequence folder not found" in capsys.readouterr().err
-    assert not (tmp_path / "x.json").exists()
-
-
-def test_weighting_bound_refuses_bad_runs(tmp_path, capsys, monkeypatch):
-    """scripts/weighting_bound.py names the bad --runs entry (the refine start is the
-    tracker's alone) before loading anything."""
-    monkeypatch.syspath_prepend(str(SCRIPTS))  # it imports learn_weights, its neighbour
-    script = load_script("weighting_bound")
-    for runs in ("smooth:refine", "smooth", "other:velocity"):
-        rc = script.main([str(BUNDLED_CLIP), "--runs", runs, "--out-json",
-                          str(tmp_path / "x.json")])
-        assert rc == 2, runs
-    err = capsys.readouterr().err
-    assert "tracker:refine" in err and "--runs takes comma-separated solver:start" in err
     assert not (tmp_path / "x.json").exists()

@@ -242,6 +242,28 @@ def test_ate_perfect_and_too_few_pairs():
         ate((ts, gt_poses[:5]), (ts, gt_poses))
 
 
+def test_ate_similarity_alignment_reads_a_scale_error():
+    """The ground truth moved rigidly and shrunk by 2 %: scale 1 / 0.98, residual ~0; the
+    rigid ATE of the same estimate is not ~0 (what the scale hides from it). The measure that
+    showed occluding contours shortening the local window's translations."""
+    rng = np.random.default_rng(0)
+    ts = np.arange(40) * 0.03
+    pos = np.cumsum(rng.normal(0, 0.02, (40, 3)), axis=0)
+    quat = np.tile([0.0, 0.0, 0.0, 1.0], (40, 1))
+    gt = (ts, np.concatenate([pos, quat], axis=1))
+    rot = quat_to_rotmat(np.array([0.1, -0.2, 0.3, 0.9]))  # normalised there
+    move = np.eye(4)
+    move[:3, :3], move[:3, 3] = rot, [0.3, -0.1, 0.2]
+    est = np.tile(np.eye(4), (40, 1, 1))
+    est[:, :3, 3] = pos * 0.98
+    est = np.einsum("ab,nbc->nac", move, est)
+    sim = ate(gt, (ts, matrices_to_poses7(est)), align="sim3")
+    assert abs(sim["scale"] - 1 / 0.98) < 1e-6 and sim["rmse"] < 1e-6
+    assert ate(gt, (ts, matrices_to_poses7(est)))["rmse"] > 1e-3
+    est[:, :3, 3] *= 1.02 / 0.98  # now 2 % too long: the scale reads 1 / 1.02
+    assert abs(ate(gt, (ts, matrices_to_poses7(est)), align="sim3")["scale"] - 1 / 1.02) < 1e-6
+
+
 def test_ate_matches_evo():
     evo_sync = pytest.importorskip("evo.core.sync")
     evo_metrics = pytest.importorskip("evo.core.metrics")

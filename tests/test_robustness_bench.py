@@ -1,115 +1,24 @@
-"""scripts/robustness_bench.py: the silently-diverged-frame test on synthetic trajectories,
-the aggregation, and one tiny real sweep on the bundled clip."""
+"""scripts/robustness_bench.py: the aggregation over seeds, and one tiny real sweep on the
+bundled clip (the silently-diverged-frame test: tests/pipeline/test_measure.py)."""
 
 from __future__ import annotations
 
 import json
 import math
-import sys
 from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-import numpy as np
 import pytest
 from conftest import load_script
 
 from edgevo_jax.cli import BUNDLED_CLIP
-from edgevo_jax.geometry import inverse_np
 
 
 @pytest.fixture(scope="module")
 def rb() -> ModuleType:
-    """The script as a module, with scripts/bench.py importable as ``bench`` while it loads
-    (as it is when the script runs: scripts/ is then sys.path[0])."""
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setitem(sys.modules, "bench", load_script("bench"))
-        yield load_script("robustness_bench")
-
-
-def _rot(axis: str, deg: float) -> np.ndarray:
-    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
-    i, j = {"x": (1, 2), "y": (2, 0), "z": (0, 1)}[axis]
-    m = np.eye(4)
-    m[i, i], m[i, j], m[j, i], m[j, j] = c, -s, s, c
-    return m
-
-
-def _trans(x: float, y: float, z: float) -> np.ndarray:
-    m = np.eye(4)
-    m[:3, 3] = (x, y, z)
-    return m
-
-
-def _groundtruth(n: int = 20) -> np.ndarray:
-    """T_world_cam moving 1 cm and turning 0.5 deg about y per frame (well under the
-    thresholds)."""
-    step = _trans(0.01, 0.002, 0.0) @ _rot("y", 0.5)
-    poses = [_trans(0.3, -0.1, 1.2) @ _rot("x", 10.0)]
-    for _ in range(n - 1):
-        poses.append(poses[-1] @ step)
-    return np.stack(poses)
-
-
-def _jump(poses: np.ndarray, i: int, local: np.ndarray) -> np.ndarray:
-    """The trajectory jumping at frame i by ``local`` (in frame i's camera coordinates) and
-    staying there: P_m = G_i local G_i^-1 G_m for m >= i, so only the motion i-1 -> i is
-    off, by exactly ``local``."""
-    out = poses.copy()
-    out[i:] = poses[i] @ local @ inverse_np(poses[i]) @ poses[i:]
-    return out
-
-
-JUMP_T, JUMP_R = 12, 7  # frames with a 6 cm jump and a 4 deg turn
-
-
-def _injected(gt: np.ndarray) -> np.ndarray:
-    return _jump(_jump(gt, JUMP_T, _trans(0.0, 0.06, 0.0)), JUMP_R, _rot("z", 4.0))
-
-
-def test_diverged_frames_flags_jumps_on_ok_frames(rb: ModuleType) -> None:
-    gt = _groundtruth()
-    assert rb.diverged_frames(gt, ["OK"] * len(gt), gt) == []
-    assert rb.diverged_frames(_injected(gt), ["OK"] * len(gt), gt) == [JUMP_R, JUMP_T]
-    # the motion errors are the injected ones
-    trans, rot = rb.motion_errors(_injected(gt), gt)
-    assert trans[JUMP_T - 1] == pytest.approx(0.06) and rot[JUMP_R - 1] == pytest.approx(4.0)
-    # under the thresholds (4 cm, 2 deg): nothing
-    small = _jump(_jump(gt, JUMP_T, _trans(0.04, 0.0, 0.0)), JUMP_R, _rot("x", 2.0))
-    assert rb.diverged_frames(small, ["OK"] * len(gt), gt) == []
-
-
-@pytest.mark.parametrize("flag", ["LOST", "WEAK"])
-def test_diverged_frames_ignores_jumps_on_flagged_frames(rb: ModuleType, flag: str) -> None:
-    gt = _groundtruth()
-    states = ["OK"] * len(gt)
-    states[JUMP_T] = states[JUMP_R] = flag
-    assert rb.diverged_frames(_injected(gt), states, gt) == []
-    # a flagged frame whose pose alone is off (a bad prediction while lost, then back on
-    # track) blames neither itself nor the OK frame after it
-    outlier = gt.copy()
-    outlier[JUMP_T] = outlier[JUMP_T] @ _trans(0.2, 0.0, 0.0) @ _rot("y", 20.0)
-    assert rb.diverged_frames(outlier, states, gt) == []
-    assert rb.diverged_frames(outlier, ["OK"] * len(gt), gt) == [JUMP_T, JUMP_T + 1]
-
-
-def test_diverged_frames_skips_frames_without_groundtruth(rb: ModuleType) -> None:
-    gt = _groundtruth()
-    partial = gt.copy()
-    partial[JUMP_T] = np.nan
-    assert rb.diverged_frames(_injected(gt), ["OK"] * len(gt), partial) == [JUMP_R]
-    with pytest.raises(ValueError, match="states"):
-        rb.diverged_frames(gt, ["OK"] * 3, gt)
-
-
-def test_parse_int_list(rb: ModuleType) -> None:
-    assert rb.parse_int_list("0-4") == [0, 1, 2, 3, 4]
-    assert rb.parse_int_list("0,1,2") == [0, 1, 2]
-    assert rb.parse_int_list("1,2,3,5") == [1, 2, 3, 5]
-    assert rb.parse_int_list("0-2,1,5") == [0, 1, 2, 5]
-    for bad in ("", "a", "3-1", "1-x"):
-        with pytest.raises(ValueError):
-            rb.parse_int_list(bad)
+    """The script as a module."""
+    return load_script("robustness_bench")
 
 
 def test_aggregate_over_seeds(rb: ModuleType) -> None:

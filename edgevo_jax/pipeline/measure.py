@@ -1,0 +1,164 @@
+"""Measuring runs, for benchmarks and experiments: a clip at a lower frame rate, a peer's run
+(``edgevo_jax.peers``) from edgevo's first pose, accuracy against the ground truth with the
+reason when there is none, statistics of per-frame times over the warm frames and of results
+over seeds, and the frames that went wrong silently (called OK, off the ground truth)."""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from ..datasets.groundtruth import groundtruth_pose_at
+from ..datasets.tum import TumSequence, load_sequence, subsequence
+from ..geometry import inverse_np, rotation_angle_np
+from ..io import matrices_to_poses7, poses7_to_matrices
+from ..metrics import ate, rpe_per_second
+from ..peers import PeerTrack, make_peer, track_peer
+from .run import initial_pose
+
+__all__ = ["DIVERGED_ROT_DEG", "DIVERGED_TRANS_M", "GT_MAX_DIFF_S", "WARMUP_FRAMES",
+           "accuracy", "diverged_frames", "finite_stats", "frame_stats", "groundtruth_at",
+           "load_clip", "motion_errors", "run_peer"]
+
+#: frames left out of warm statistics: frame 0 sets up, frame 1 is the first pair (compiles)
+WARMUP_FRAMES = 2
+#: a frame called OK whose motion is off the ground truth's by more than these has diverged
+DIVERGED_TRANS_M = 0.05
+DIVERGED_ROT_DEG = 3.0
+GT_MAX_DIFF_S = 0.02  # s to the nearest ground-truth pose, as the ATE's association
+
+
+def load_clip(path: str | os.PathLike[str], *, frame_step: int = 1,
+              max_frames: int | None = None) -> TumSequence:
+    """The TUM folder at ``path`` played at 1/``frame_step`` of its frame rate as the
+    benchmark's lists would be recorded (``load_sequence(..., frame_step=k)``: every k-th
+    line of rgb.txt and of depth.txt, then associated), cut to the span of time of the full
+    sequence's first ``max_frames`` frames (None: all; the cut keeps ``subsequence``'s
+    name)."""
+    seq = load_sequence(path, frame_step=frame_step)
+    if max_frames is None:
+        return seq
+    if max_frames < 1:
+        raise ValueError(f"max_frames must be positive, got {max_frames}")
+    full = seq if frame_step == 1 else load_sequence(path)
+    t_end = full.timestamps[min(max_frames, len(full)) - 1]
+    return subsequence(seq, 0, int(np.searchsorted(seq.timestamps, t_end, "right")))
+
+
+def run_peer(method: str, seq: Any, *, max_frames: int | None = None) -> PeerTrack:
+    """Track the first ``max_frames`` frames of ``seq`` (None: all) with the peer ``method``
+    (``peers.make_peer``; PeerMissing when it cannot run here) from edgevo's first pose
+    (``run.initial_pose``); the track, with the peer's description."""
+    peer = make_peer(method, seq.intrinsics, seq.width, seq.height)
+    n = len(seq) if max_frames is None else min(len(seq), max_frames)
+    return track_peer(peer, seq, n, initial_pose(seq))
+
+
+def frame_stats(frame_ms: Sequence[float], *, skip: int = WARMUP_FRAMES) -> dict[str, float]:
+    """Median, p90, mean and max of per-frame times after the first ``skip`` frames (NaN each
+    when none is left)."""
+    v = np.asarray(frame_ms[skip:], np.float64)
+    if not v.size:
+        return dict.fromkeys(("median", "p90", "mean", "max"), math.nan)
+    return {"median": float(np.median(v)), "p90": float(np.percentile(v, 90)),
+            "mean": float(v.mean()), "max": float(v.max())}
+
+
+def finite_stats(values: Sequence[float | None]) -> dict[str, float]:
+    """Mean, standard deviation (ddof 1; NaN under two values), min, max and median of the
+    finite values (None, NaN and infinities left out; NaN each when none is left), e.g. one
+    setting's ATE over seeds."""
+    v = np.asarray([math.nan if x is None else x for x in values], np.float64)
+    v = v[np.isfinite(v)]
+    if not v.size:
+        return dict.fromkeys(("mean", "std", "min", "max", "median"), math.nan)
+    return {"mean": float(v.mean()), "std": float(v.std(ddof=1)) if v.size > 1 else math.nan,
+            "min": float(v.min()), "max": float(v.max()), "median": float(np.median(v))}
+
+
+def accuracy(groundtruth: tuple[np.ndarray, np.ndarray] | None, timestamps: np.ndarray,
+             poses: np.ndarray, *, no_groundtruth: str = "no ground truth") -> dict[str, Any]:
+    """ATE RMSE (m; TUM's ``evaluate_ate``: rigid alignment) and RPE over 1 s
+    (``rpe_m_per_s``, ``rpe_deg_per_s``) of T_world_cam ``poses`` (N, 4, 4) at
+    ``timestamps`` against ``groundtruth`` (times, poses7). NaN where they cannot be
+    computed, with an ``accuracy_note`` saying why: ``no_groundtruth`` without one, a clip
+    spanning under 1 s (RPE), or the metric's error (e.g. fewer than 3 poses associated)."""
+    ts = np.asarray(timestamps, np.float64)
+    out: dict[str, Any] = {"ate_rmse_m": math.nan, "rpe_m_per_s": math.nan,
+                           "rpe_deg_per_s": math.nan}
+    if groundtruth is None:
+        out["accuracy_note"] = no_groundtruth
+        return out
+    est = matrices_to_poses7(np.asarray(poses, np.float64))
+    try:
+        out["ate_rmse_m"] = float(ate(groundtruth, (ts, est))["rmse"])
+        if ts.size and ts[-1] - ts[0] >= 1.0:
+            r = rpe_per_second(groundtruth, (ts, est))
+            out["rpe_m_per_s"] = float(r["trans_rmse_m_per_s"])
+            out["rpe_deg_per_s"] = float(r["rot_rmse_deg_per_s"])
+        else:
+            out["accuracy_note"] = "RPE n/a: clip shorter than 1 s"
+    except ValueError as err:  # e.g. fewer than 3 poses associated with the ground truth
+        out["accuracy_note"] = str(err)
+    return out
+
+
+def groundtruth_at(seq: Any, timestamps: Sequence[float], *, max_diff: float = GT_MAX_DIFF_S,
+                   interpolate: bool = False) -> np.ndarray:
+    """Ground-truth T_world_cam (N, 4, 4) at each timestamp (``datasets.groundtruth_pose_at``:
+    the nearest pose, or with ``interpolate`` the pose at that time), all NaN where there is
+    none within ``max_diff`` s or the sequence has no ground truth."""
+    out = np.full((len(timestamps), 4, 4), np.nan)
+    for i, t in enumerate(np.asarray(timestamps, np.float64)):
+        pose7 = groundtruth_pose_at(seq, float(t), max_diff, interpolate=interpolate)
+        if pose7 is not None:
+            out[i] = poses7_to_matrices(np.asarray(pose7)[None])[0]
+    return out
+
+
+def motion_errors(poses: np.ndarray, gt_poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each frame i >= 1, the error of the estimated motion from frame i-1 against the
+    ground truth's: E = (G_{i-1}^-1 G_i)^-1 (P_{i-1}^-1 P_i); returns (|trans(E)| in m,
+    angle(E) in degrees), each of length N - 1 (NaN where a ground-truth pose is NaN)."""
+    p = np.asarray(poses, np.float64)
+    g = np.asarray(gt_poses, np.float64)
+    if p.shape != g.shape or p.ndim != 3 or p.shape[1:] != (4, 4):
+        raise ValueError(f"poses {p.shape} and gt_poses {g.shape} must both be (N, 4, 4)")
+    if p.shape[0] < 2:
+        return np.zeros(0), np.zeros(0)
+    rel_est = inverse_np(p[:-1]) @ p[1:]
+    rel_gt = inverse_np(g[:-1]) @ g[1:]
+    e = inverse_np(rel_gt) @ rel_est
+    trans = np.linalg.norm(e[:, :3, 3], axis=-1)
+    rot = np.degrees(np.asarray(rotation_angle_np(e), np.float64).reshape(-1))
+    return trans, rot
+
+
+def diverged_frames(poses: np.ndarray, states: Sequence[str], gt_poses: np.ndarray, *,
+                    trans_m: float = DIVERGED_TRANS_M, rot_deg: float = DIVERGED_ROT_DEG
+                    ) -> list[int]:
+    """Indices of the silently diverged frames of a run.
+
+    ``poses`` (N, 4, 4) are the run's T_world_cam in frame order, ``states`` its N states
+    (``"OK"``, ``"WEAK"``, ``"LOST"``) and ``gt_poses`` (N, 4, 4) the ground truth at the
+    same frames' timestamps (NaN where unknown: :func:`groundtruth_at`). Frame i >= 1 is
+    diverged when it and the frame before it (the previous frame the method tracked) are
+    both OK and its motion from that frame differs from the ground truth's motion between
+    the same timestamps by more than ``trans_m`` metres or ``rot_deg`` degrees. A motion into
+    or out of a WEAK or LOST frame is not judged: the method flagged it, so any jump there
+    is not silent. Frames without ground truth on either side are not judged."""
+    if len(states) != len(poses):
+        raise ValueError(f"{len(states)} states for {len(poses)} poses")
+    trans, rot = motion_errors(poses, gt_poses)
+    out = []
+    for i in range(1, len(states)):
+        if states[i] != "OK" or states[i - 1] != "OK":
+            continue
+        t, r = trans[i - 1], rot[i - 1]
+        if math.isfinite(t) and math.isfinite(r) and (t > trans_m or r > rot_deg):
+            out.append(i)
+    return out
