@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from edgevo_jax import Config, enable_batch_exact, evaluate, load_sequence, run
+from edgevo_jax.reports import int_list
 
 
 def digest(run) -> str:
@@ -33,18 +34,12 @@ def digest(run) -> str:
     return h.hexdigest()
 
 
-def _ints(text: str) -> list[int]:
-    """'0-2' or '1,2,3' -> a list of ints."""
-    a, _, b = text.partition("-")
-    return list(range(int(a), int(b) + 1)) if b else [int(x) for x in text.split(",")]
-
-
 def main(argv: list[str] | None = None) -> int:
     enable_batch_exact()  # the CLI's arithmetic
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("clips", nargs="+", type=Path)
-    p.add_argument("--steps", type=_ints, default=[1, 2, 3])
-    p.add_argument("--seeds", type=_ints, default=[0, 1, 2])
+    p.add_argument("--steps", type=int_list, default=[1, 2, 3])
+    p.add_argument("--seeds", type=int_list, default=[0, 1, 2])
     p.add_argument("--batch", action="store_true", help="through evaluate (the batch path)")
     p.add_argument("--out", type=Path)
     p.add_argument("--check", type=Path)

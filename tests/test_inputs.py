@@ -593,11 +593,12 @@ anything is read (argparse's errors print the usage first). A ROS bag is read th
 """
 
 
-def _shown(argv: list[str], folder: Path, base: Path) -> str:
-    """The command as the catalogue shows it: no --out and --no-progress, paths shortened."""
+def _shown(argv: list[str], folder: Path, base: Path, *, out: bool = False) -> str:
+    """The command as the catalogue shows it: no --no-progress, no --out (unless ``out``),
+    paths shortened."""
     keep: list[str] = []
     for a in argv:
-        if keep and keep[-1] == "--out":
+        if keep and keep[-1] == "--out" and not out:
             keep.pop()
         elif a != "--no-progress":
             keep.append(a)
@@ -650,7 +651,7 @@ def catalogue() -> str:
 
     def add(group: str, name: str, argv: list[str], folder: Path, base: Path) -> None:
         rc, text = _user_sees(argv)
-        groups[group].append((name, _shown(argv, folder, base), rc,
+        groups[group].append((name, _shown(argv, folder, base, out=group == "Output paths"), rc,
                               _short(text, folder, base)))
 
     with tempfile.TemporaryDirectory() as tmp:
