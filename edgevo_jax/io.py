@@ -114,13 +114,14 @@ def write_trajectory(
 
 
 def check_output(path: str | os.PathLike[str], *, what: str = "output",
-                 folder: bool = False) -> Path:
+                 folder: bool = False, make_folders: bool = False) -> Path:
     """``path`` as a Path when it can be written, before anything is computed; ValueError
     naming ``what`` and the problem otherwise: a file path that is a folder (or a folder path
     that is a file), a file whose folder does not exist, or a place the process cannot write
     (checked by creating and removing a temporary file there: permission bits alone do not
-    say, e.g. for root or a read-only file system). A folder that does not exist yet is
-    checked at its nearest existing parent. Writes nothing."""
+    say, e.g. for root or a read-only file system). A folder that does not exist yet (the
+    file's own folder too, with ``make_folders``: the caller makes it) is checked at its
+    nearest existing parent. Writes nothing."""
     path = Path(path)
     if folder:
         if path.exists() and not path.is_dir():
@@ -134,6 +135,8 @@ def check_output(path: str | os.PathLike[str], *, what: str = "output",
         if path.is_dir():
             raise ValueError(f"{what} {path}: is a folder; give a file path in it")
         place = path.parent
+        while make_folders and not place.exists():
+            place = place.parent
         if not place.is_dir():
             raise ValueError(f"{what} {path}: the folder {place} does not exist")
     try:

@@ -76,7 +76,7 @@ def command(args: argparse.Namespace) -> int:
         return 2
     if not (args.dpi > 0 and math.isfinite(args.dpi)):
         raise ValueError(f"--dpi must be positive, got {args.dpi}")
-    check_output(args.out, what="--out")  # before anything is drawn
+    check_output(args.out, what="--out", make_folders=True)  # before anything is drawn
     out = {"trajectory": _plot_trajectory, "frame": _plot_frame,
            "selection": _plot_selection, "configs": _plot_configs}[args.figure](args)
     print(f"wrote {out}")
