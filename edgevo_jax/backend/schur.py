@@ -99,3 +99,42 @@ def marginalize(
     K = Hkd @ Hdd_inv
     Hm = Hkk - K @ Hkd.T
     return 0.5 * (Hm + Hm.T), b[keep] - K @ b[drop]
+
+
+class EliminatedBlocks(NamedTuple):
+    """What eliminating N dense diagonal blocks leaves (``eliminate_blocks``): S (m, m)
+    (symmetrised) and r (m,) of the kept variables; ``per_pair`` (N, m), each block's share
+    of r (b_c,i - H_cp,i H_pp,i^-1 b_p,i); and what back-substitution needs."""
+
+    S: jnp.ndarray
+    r: jnp.ndarray
+    per_pair: jnp.ndarray
+    inv: jnp.ndarray
+    H_cp: jnp.ndarray
+    b_p: jnp.ndarray
+
+    def back(self, delta_c: jnp.ndarray) -> jnp.ndarray:
+        """The eliminated variables' minimiser (N, b) given the kept ones' delta_c (m,):
+        p_i = -H_pp,i^-1 (b_p,i + H_cp,i^T delta_c)."""
+        rhs = self.b_p + jnp.einsum("nmb,m->nb", self.H_cp, delta_c)
+        return -jnp.einsum("nab,nb->na", self.inv, rhs)
+
+
+def eliminate_blocks(
+    H_cc: jnp.ndarray, H_cp: jnp.ndarray, H_pp: jnp.ndarray, b_c: jnp.ndarray,
+    b_p: jnp.ndarray,
+) -> EliminatedBlocks:
+    """The module's elimination with a block-diagonal D of N dense (b, b) blocks, each
+    variable block coupled only to the kept variables (the camera's calibration: each
+    pair's pose). Per block i: H_cc,i (N, m, m), H_cp,i (N, m, b), H_pp,i (N, b, b),
+    b_c,i (N, m), b_p,i (N, b), summed over i after eliminating:
+    S = sum_i H_cc,i - H_cp,i H_pp,i^-1 H_cp,i^T, r = sum_i b_c,i - H_cp,i H_pp,i^-1 b_p,i.
+    A block with a singular H_pp,i (a pair with too few residuals) gets the pseudo-inverse
+    (nothing along its null space)."""
+    inv = jnp.linalg.pinv(0.5 * (H_pp + jnp.swapaxes(H_pp, -1, -2)), hermitian=True)
+    W = H_cp @ inv
+    S_i = H_cc - W @ jnp.swapaxes(H_cp, -1, -2)
+    per_pair = b_c - jnp.einsum("nmb,nb->nm", W, b_p)
+    S = jnp.sum(S_i, axis=0)
+    return EliminatedBlocks(0.5 * (S + S.T), jnp.sum(per_pair, axis=0), per_pair, inv, H_cp,
+                            b_p)

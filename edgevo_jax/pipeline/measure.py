@@ -33,13 +33,13 @@ GT_MAX_DIFF_S = 0.02  # s to the nearest ground-truth pose, as the ATE's associa
 
 
 def load_clip(path: str | os.PathLike[str], *, frame_step: int = 1,
-              max_frames: int | None = None) -> TumSequence:
+              max_frames: int | None = None, camera: Any = None) -> TumSequence:
     """The TUM folder at ``path`` played at 1/``frame_step`` of its frame rate as the
     benchmark's lists would be recorded (``load_sequence(..., frame_step=k)``: every k-th
     line of rgb.txt and of depth.txt, then associated), cut to the span of time of the full
     sequence's first ``max_frames`` frames (None: all; the cut keeps ``subsequence``'s
-    name)."""
-    seq = load_sequence(path, frame_step=frame_step)
+    name); ``camera``: ``load_sequence``'s (None: the folder's own)."""
+    seq = load_sequence(path, frame_step=frame_step, camera=camera)
     if max_frames is None:
         return seq
     if max_frames < 1:
