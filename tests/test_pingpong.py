@@ -32,3 +32,13 @@ def test_pingpong_sequence_follows_the_clip():
         assert np.linalg.norm(gt_p[k, :3] - near[:3]) < 3e-3
     # frames come from the clip's files: loading one gives the clip's frame
     np.testing.assert_array_equal(long.load_frame(n)[1], seq.load_frame(n - 2)[1])
+
+
+def test_pingpong_keeps_each_depth_images_time_to_its_colour_image(shared_clip):
+    seq = load_sequence(shared_clip("rgbd_dataset_freiburg1_rpy_first120"))
+    played = pingpong(seq, 300)
+    lag = np.asarray(seq.depth_timestamps) - np.asarray(seq.timestamps)
+    idx = pingpong_indices(len(seq), 300)
+    assert played.depth_timestamps.shape == (300,)
+    np.testing.assert_allclose(played.depth_timestamps - played.timestamps, lag[idx],
+                               atol=1e-6)

@@ -39,9 +39,9 @@ def _interpolate(gt_t: np.ndarray, gt_p: np.ndarray, t: np.ndarray) -> np.ndarra
 def pingpong(seq: TumSequence, length: int) -> TumSequence:
     """``seq`` played forward and backward to ``length`` frames. Frame k is the clip's frame
     ``pingpong_indices(len(seq), length)[k]`` at time t_0 + k * dt (dt: the clip's median
-    frame interval); its ground truth (when the clip has one) is the clip's, interpolated at
-    that frame's original timestamp. Nothing is copied: the frames are read from the clip's
-    files."""
+    frame interval), its depth image's time as far from it as in the clip; its ground truth
+    (when the clip has one) is the clip's, interpolated at that frame's original timestamp.
+    Nothing is copied: the frames are read from the clip's files."""
     if length < 1:
         raise ValueError(f"length must be positive, got {length}")
     idx = pingpong_indices(len(seq), length)
@@ -50,7 +50,12 @@ def pingpong(seq: TumSequence, length: int) -> TumSequence:
     gt = None
     if seq.groundtruth is not None:
         gt = (ts, _interpolate(*seq.groundtruth, np.asarray(seq.timestamps)[idx]))
+    depth_t = None  # each depth image keeps its time relative to its colour image
+    if seq.depth_timestamps is not None:
+        lag = np.asarray(seq.depth_timestamps, np.float64) - np.asarray(seq.timestamps)
+        depth_t = ts + lag[idx]
     return dataclasses.replace(
         seq, name=f"{seq.name}_pingpong{length}", timestamps=ts,
         rgb_files=tuple(seq.rgb_files[i] for i in idx),
-        depth_files=tuple(seq.depth_files[i] for i in idx), groundtruth=gt)
+        depth_files=tuple(seq.depth_files[i] for i in idx), groundtruth=gt,
+        depth_timestamps=depth_t)

@@ -4,23 +4,28 @@ poses and the camera, the poses eliminated by the Schur complement.
 
 Parameters (``PARAMS``, in that order): fx, fy, cx, cy (pixels), ``readout_s`` (the colour
 camera's rolling-shutter readout), ``depth_time_offset_s`` (t_depth_true = t_depth_file +
-offset) and ``depth_scale`` (true depth = scale * depth read). The solve works in
-``STEP_UNITS`` (px, ms, %): one unit of each is a comparable change of the cost.
+offset), ``depth_scale`` (true depth = scale * depth read) and the depth camera's pose in the
+colour camera (``T_color_depth``: a rotation vector and a translation; the depth image is
+what a camera of the colour camera's pinhole sees from there). The solve works in
+``STEP_UNITS`` (px, ms, %, mrad, mm): one unit of each is a comparable change of the cost.
 
 The model of a pair, keyframe k and frame f (each with the velocity of its camera, a body
 twist per second from the tracked poses, and ``lag``, its depth image's file time minus its
 colour image's time):
-- a keyframe edge at pixel p with depth z read: the depth camera saw it at time
-  lag_k + offset after the colour image's middle row; moved to that camera by
-  exp(dt vel_k) (first order) it keeps the ray through p and takes the depth it has there;
+- a keyframe edge at pixel p with depth z read: the depth camera saw it from its pose
+  T_color_depth at time lag_k + offset after the colour image's middle row; moved from
+  that camera (first order) it keeps the colour ray through p and takes the depth it has
+  there (a smooth surface: the depth camera's pixel for p is near p);
   then the rolling shutter's unroll (``shutter.unroll_edges``) moves it to the middle row;
 - the frame sees it through its rolling shutter (``shutter.shutter_warp``, the frame's own
   velocity times readout / H per row), and the residual is the distance field there, gated,
   checked for gradient consistency and Huber-weighted as by the tracker at level 0;
-- a keyframe depth point (pixel and depth read) goes to the colour keyframe by its lag, to
-  the frame by the pair's pose, to the frame's depth camera by the frame's lag, and meets
+- a keyframe depth point (pixel and depth read) goes to the colour keyframe by
+  T_color_depth and its lag, to the frame by the pair's pose, to the frame's depth camera
+  by the frame's lag and T_color_depth^-1, and meets
   the frame's depth image as the tracker's point-to-plane residual (``depth.point_to_plane``).
-With readout, offset and lags 0 and scale 1 this is the tracker's level-0 cost.
+With readout, offset and lags 0, scale 1 and T_color_depth the identity this is the
+tracker's level-0 cost.
 
 The solve (``solve_camera``): Levenberg-Marquardt (``solvers.LevenbergMarquardt``) on the
 joint normal equations of all pairs' poses (left twists, 6 each) and the free camera
@@ -33,6 +38,7 @@ lowers the summed robust cost.
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -50,10 +56,15 @@ from ..geometry import Pose
 from ..image.interp import bilinear_with_grad
 from ..solvers import LevenbergMarquardt
 
-#: The camera parameters the solve can free, in the order of its vectors.
-PARAMS = ("fx", "fy", "cx", "cy", "readout_s", "depth_time_offset_s", "depth_scale")
-#: One solve unit of each parameter: 1 px, 1 px, 1 px, 1 px, 1 ms, 1 ms, 1 % (of scale 1).
-STEP_UNITS = np.array([1.0, 1.0, 1.0, 1.0, 1e-3, 1e-3, 1e-2])
+#: The camera parameters the solve can free, in the order of its vectors; the last six are
+#: the depth camera's pose in the colour camera, T_color_depth = (R(depth_rot), depth_t): a
+#: rotation vector (rad) and a translation (m).
+PARAMS = ("fx", "fy", "cx", "cy", "readout_s", "depth_time_offset_s", "depth_scale",
+          "depth_rot_x", "depth_rot_y", "depth_rot_z", "depth_t_x", "depth_t_y", "depth_t_z")
+#: One solve unit of each parameter: 1 px (pinhole), 1 ms, 1 ms, 1 % (of scale 1), 1 mrad,
+#: 1 mm.
+STEP_UNITS = np.array([1.0, 1.0, 1.0, 1.0, 1e-3, 1e-3, 1e-2, 1e-3, 1e-3, 1e-3, 1e-3, 1e-3,
+                       1e-3])
 #: The solve's damping policy (the tracker's numbers, a wider range).
 CAMERA_DAMPING = LevenbergMarquardt(lam_init=1e-3, lam_min=1e-8, lam_max=1e6)
 
@@ -119,12 +130,15 @@ def pair_residuals(xi: jnp.ndarray, theta: jnp.ndarray, T0: Pose, pair: PairData
     solved, a smaller focal length would shrink every depth residual."""
     fx, fy, cx, cy, readout, offset, scale = (theta[i] for i in range(7))
     intr = Intrinsics(fx, fy, cx, cy)
+    R_cd = Pose.exp(jnp.concatenate([jnp.zeros(3, theta.dtype), theta[7:10]])).R
+    t_cd = theta[10:13]
     T = T0.retract(xi)
     mid = 0.5 * (height - 1)
-    # keyframe edges: depth read at the depth camera's time, on the colour ray, then unrolled
+    # keyframe edges: depth read by the depth camera (its pose, its time), on the colour ray,
+    # then unrolled
     ray = _unproject(fx, fy, cx, cy, pair.uv, jnp.ones_like(pair.z))
     z = jnp.where(pair.valid, scale * pair.z, 1.0)
-    z_ray = _move(ray * z, pair.vel_k, pair.lag_k + offset)[2]
+    z_ray = _move(R_cd @ (ray * z) + t_cd[:, None], pair.vel_k, pair.lag_k + offset)[2]
     P = ray * jnp.where(z_ray > 1e-6, z_ray, z)
     P = _move(P, pair.vel_k * readout / height, pair.uv[1] - mid)
     rows = RowMotion(twist=pair.vel_f * readout / height, ref=jnp.asarray(mid, P.dtype),
@@ -134,10 +148,11 @@ def pair_residuals(xi: jnp.ndarray, theta: jnp.ndarray, T0: Pose, pair: PairData
     ok = inside & (pts_f[2] > 1e-6) & pair.valid
     # depth points: keyframe depth camera -> colour keyframe -> frame -> frame depth camera
     D = _unproject(fx, fy, cx, cy, pair.dpix, scale * pair.dz)
-    D = _move(D, pair.vel_k, pair.lag_k + offset)
+    D = _move(R_cd @ D + t_cd[:, None], pair.vel_k, pair.lag_k + offset)
     n = pair.normals
     q = _move(T.apply(D), pair.vel_f, -(pair.lag_f + offset))
-    nq = T.R @ n
+    q = R_cd.T @ (q - t_cd[:, None])  # in the frame's depth camera
+    nq = R_cd.T @ (T.R @ (R_cd @ n))
     zq = jnp.where(q[2] > 1e-6, q[2], 1.0)
     u, v = fx * q[0] / zq + cx, fy * q[1] / zq + cy
     h, w = pair.depth.shape
@@ -215,6 +230,59 @@ def reduced_camera_system(systems: PairSystem, lam: jnp.ndarray | float = 0.0):
     return eliminate_blocks(A[:, 6:, 6:], A[:, 6:, :6], A[:, :6, :6], g[:, 6:], g[:, :6])
 
 
+def _camera_step(system: JointSystem, lam: jnp.ndarray, free: jnp.ndarray) -> CameraSolve:
+    """The damped joint step: the camera's from the reduced system (fixed parameters held),
+    each pair's pose by back-substitution."""
+    e = reduced_camera_system(system.pairs, lam)
+    eye = jnp.eye(e.S.shape[0], dtype=e.S.dtype)
+    S = e.S + 1e-9 * (jnp.trace(e.S) + 1.0) * eye
+    S = jnp.where(free[:, None] * free[None, :] > 0, S, eye)
+    d_phi = -jnp.linalg.solve(S, e.r * free)
+    return CameraSolve(e.back(d_phi), d_phi)
+
+
+def _step_norm(d: CameraSolve) -> jnp.ndarray:
+    return jnp.sqrt(jnp.sum(d.phi ** 2) + jnp.max(jnp.sum(d.xi ** 2, axis=1)))
+
+
+@partial(jax.jit, static_argnums=(6,))
+def _lm_try(state, theta0, free, T0: Pose, pairs: PairData, knobs: SolveKnobs, height: int):
+    """One Levenberg-Marquardt try of the joint solve (one program)."""
+    new, _ = CAMERA_DAMPING.step(
+        state, solve=lambda x, system, lam: _camera_step(system, lam, free),
+        apply=lambda x, d: CameraSolve(x.xi + d.xi, x.phi + d.phi),
+        evaluate=lambda x, system: joint_system(x, theta0, free, T0, pairs, knobs, height),
+        norm=_step_norm)
+    return new
+
+
+_joint_system = jax.jit(joint_system, static_argnums=(6,))
+
+
+def pad_pairs(pairs: PairData, T0: np.ndarray, multiple: int = 32
+              ) -> tuple[PairData, np.ndarray, int]:
+    """The pairs (stacked, numpy) and their start poses (N, 4, 4) padded to a multiple of
+    ``multiple`` with copies of the first pair whose edges and depth points are all invalid
+    (they add nothing to any sum), so that a calibration compiles its solve once for a
+    range of pair counts. Returns them and N."""
+    n = pairs.valid.shape[0]
+    extra = -n % multiple
+    if extra == 0:
+        return pairs, T0, n
+
+    def pad(name, a):
+        filler = np.repeat(a[:1], extra, axis=0)
+        if name == "valid":
+            filler = np.zeros_like(filler)
+        elif name == "normals":
+            filler = np.zeros_like(filler)
+        return np.concatenate([a, filler])
+
+    padded = PairData(**{name: pad(name, np.asarray(getattr(pairs, name)))
+                         for name in PairData._fields})
+    return padded, np.concatenate([T0, np.repeat(T0[:1], extra, axis=0)]), n
+
+
 def solve_camera(theta0: np.ndarray, free: np.ndarray, T0: Pose, pairs: PairData,
                  knobs: SolveKnobs, height: int, *, iterations: int = 20,
                  step_tol: float = 1e-3, on_try: Callable[[int, float], None] | None = None,
@@ -223,34 +291,19 @@ def solve_camera(theta0: np.ndarray, free: np.ndarray, T0: Pose, pairs: PairData
     start camera theta0 (``PARAMS`` values) and the pairs' poses T0 (N poses): at most
     ``iterations`` tries, stopped when a step is under ``step_tol`` (in the solve's units,
     the pose twists included) or after 5 rejections in a row; ``on_try(try, cost)`` is
-    called after each. Returns the point, its
-    systems, the number of tries and the summed robust cost at the start."""
+    called after each. Returns the point, its systems, the number of tries and the summed
+    robust cost at the start. Programs are compiled once per pair count (``pad_pairs``)."""
     dtype = jnp.float32
     theta0 = jnp.asarray(theta0, dtype)
     free = jnp.asarray(free, dtype)
     n = pairs.valid.shape[0]
     x0 = CameraSolve(jnp.zeros((n, 6), dtype), jnp.zeros(len(PARAMS), dtype))
-    system_fn = jax.jit(joint_system, static_argnums=(6,))
-    state = CAMERA_DAMPING.init(x0, system_fn(x0, theta0, free, T0, pairs, knobs, height),
+    state = CAMERA_DAMPING.init(x0, _joint_system(x0, theta0, free, T0, pairs, knobs, height),
                                 dtype)
-
-    @jax.jit
-    def solve(system: JointSystem, lam):
-        e = reduced_camera_system(system.pairs, lam)
-        S = e.S + 1e-9 * (jnp.trace(e.S) + 1.0) * jnp.eye(e.S.shape[0], dtype=e.S.dtype)
-        S = jnp.where(free[:, None] * free[None, :] > 0, S, jnp.eye(S.shape[0], dtype=S.dtype))
-        d_phi = -jnp.linalg.solve(S, e.r * free)
-        d_xi = e.back(d_phi)
-        return CameraSolve(d_xi, d_phi)
-
     start_cost = float(state.system.cost)
     tries = 0
     for tries in range(1, iterations + 1):  # noqa: B007 (returned)
-        state, _ = CAMERA_DAMPING.step(
-            state, solve=lambda x, system, lam: solve(system, lam),
-            apply=lambda x, d: CameraSolve(x.xi + d.xi, x.phi + d.phi),
-            evaluate=lambda x, system: system_fn(x, theta0, free, T0, pairs, knobs, height),
-            norm=lambda d: jnp.sqrt(jnp.sum(d.phi ** 2) + jnp.max(jnp.sum(d.xi ** 2, axis=1))))
+        state = _lm_try(state, theta0, free, T0, pairs, knobs, height)
         if on_try is not None:
             on_try(tries, float(state.system.cost))
         if not bool(CAMERA_DAMPING.continues(state, step_tol, 5)):
@@ -270,7 +323,8 @@ def sandwich_covariance(systems: PairSystem, clusters: np.ndarray, free: np.ndar
     at a solution, robust to noise correlated within a cluster of pairs (pairs sharing a
     keyframe share its edges): S^-1 (sum_c b_c b_c^T) S^-1 * C / (C - 1), with S the
     reduced camera information and b_c the reduced gradients summed over cluster c (C
-    clusters). Infinite variances where S is singular along a parameter."""
+    clusters; pairs labelled below 0 are padding, in none). Infinite variances where S is
+    singular along a parameter."""
     e = reduced_camera_system(systems)
     S = np.asarray(e.S, np.float64)
     per_pair = np.asarray(e.per_pair, np.float64)
@@ -278,7 +332,7 @@ def sandwich_covariance(systems: PairSystem, clusters: np.ndarray, free: np.ndar
     cov = np.zeros((len(PARAMS), len(PARAMS)))
     if f.size == 0:
         return cov
-    labels = np.unique(clusters)
+    labels = np.unique(clusters[clusters >= 0])  # negative: padding (``pad_pairs``)
     B = np.zeros((f.size, f.size))
     for c in labels:
         b = per_pair[clusters == c][:, f].sum(axis=0)

@@ -12,8 +12,9 @@ shutter's readout time, the time offset of the depth images and the depth scale;
 resolution (``RESOLUTION``) is reported as not observable and kept at its start: the solve
 is run again without it. The depth scale never is observable from one RGB-D camera alone:
 scaling the world and the depth together leaves every image as it is (the poses'
-translations absorb it); its line says so. The depth camera's pose (``T_color_depth``) is
-not estimated (kept at its start).
+translations absorb it); its line says so. The depth camera's pose (``T_color_depth``,
+``fit`` name ``"T_color_depth"``) is estimated relative to the start's, with which the frames
+were read.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -43,11 +45,12 @@ from ..learn.camera import (
     PARAMS,
     PairData,
     camera_of,
+    pad_pairs,
     sandwich_covariance,
     solve_camera,
 )
 
-__all__ = ["DEFAULT_FIT", "RESOLUTION", "Calibration", "calibrate", "tracked_pairs"]
+__all__ = ["DEFAULT_FIT", "DEPTH_POSE", "RESOLUTION", "Calibration", "calibrate", "tracked_pairs"]
 
 #: What ``calibrate`` fits unless told: the readout and the depth time offset. The pinhole
 #: is opt-in (``fit``): on the shared clips its estimate ran off along directions the
@@ -58,8 +61,13 @@ DEFAULT_FIT = ("readout_s", "depth_time_offset_s")
 #: The smallest 1-sigma that counts as knowing a parameter (``PARAMS`` order): 0.5 % of a
 #: 500 px focal length, 2.5 px for the principal point, 4 ms for the readout and the time
 #: offset (a fifth of a Kinect's 20 ms readout; a tenth of a 30 Hz frame's period), 1 % for
-#: the depth scale. Beyond it the estimate is noise and the start is kept.
-RESOLUTION = np.array([2.5, 2.5, 2.5, 2.5, 4e-3, 4e-3, 1e-2])
+#: the depth scale, 0.25 deg and 3 mm for the depth camera's pose. Beyond it the estimate is
+#: noise and the start is kept.
+RESOLUTION = np.array([2.5, 2.5, 2.5, 2.5, 4e-3, 4e-3, 1e-2, *[np.radians(0.25)] * 3,
+                       *[3e-3] * 3])
+#: ``fit``'s name for the depth camera's pose (its six parameters together).
+DEPTH_POSE = ("depth_rot_x", "depth_rot_y", "depth_rot_z", "depth_t_x", "depth_t_y",
+              "depth_t_z")
 
 #: Why a parameter can be unobservable, as its ``not_observable`` line says.
 _WHY = {
@@ -72,6 +80,8 @@ _WHY = {
     "depth_time_offset_s": "the camera moves too little between colour and depth images",
     "depth_scale": "one RGB-D camera cannot tell it: a world and depth scaled together "
                    "give the same images (a metric reference is needed)",
+    **{name: "the motion does not tell the depth camera's pose (it takes rotation about "
+             "more than one axis)" for name in DEPTH_POSE},
 }
 
 
@@ -96,17 +106,29 @@ class Calibration:
 
     def write(self, path: str | Path) -> None:
         """Write the camera file (docs/camera_file.md) with the uncertainties, the
-        not-observable lines and what it came from."""
-        write_camera_toml(path, self.camera, source=self.source, uncertainty=self.sigma,
-                          observable=self.not_observable)
+        not-observable lines and what it came from (the depth pose's six as its
+        ``rotation_deg`` and ``translation_m``)."""
+        sigma = {k: v for k, v in self.sigma.items() if k not in DEPTH_POSE}
+        why = {k: v for k, v in self.not_observable.items() if k not in DEPTH_POSE}
+        for key, names, scale in (("rotation_deg", DEPTH_POSE[:3], math.degrees(1.0)),
+                                  ("translation_m", DEPTH_POSE[3:], 1.0)):
+            if all(n in self.sigma for n in names):
+                sigma[key] = tuple(scale * self.sigma[n] for n in names)
+            reasons = [self.not_observable[n] for n in names if n in self.not_observable]
+            if reasons:
+                why[key] = reasons[0]
+        write_camera_toml(path, self.camera, source=self.source, uncertainty=sigma,
+                          observable=why)
 
     def lines(self) -> list[str]:
         """The estimates as text, one line per parameter."""
         out = []
         for i, name in enumerate(PARAMS):
             value, start = _values(self.camera)[i], _values(self.start)[i]
-            scale, unit = (1e3, "ms") if name.endswith("_s") else (1.0, "" if name ==
-                                                                    "depth_scale" else "px")
+            scale, unit = {"readout_s": (1e3, "ms"), "depth_time_offset_s": (1e3, "ms"),
+                           "depth_scale": (1.0, "")}.get(name, (1.0, "px"))
+            if name in DEPTH_POSE:
+                scale, unit = (math.degrees(1.0), "deg") if "rot" in name else (1e3, "mm")
             if name in self.not_observable:
                 out.append(f"  {name:20s} {scale * start:10.4f} {unit:3s} kept: not observable"
                            f" ({self.not_observable[name]})")
@@ -119,9 +141,15 @@ class Calibration:
 
 
 def _values(camera: Camera) -> np.ndarray:
+    """The camera as ``PARAMS`` values (the depth pose as a rotation vector, rad, and a
+    translation, m)."""
     fx, fy, cx, cy = camera.intrinsics
+    pose = np.zeros(6)
+    if camera.T_color_depth is not None:
+        T = np.asarray(camera.T_color_depth, np.float64)
+        pose = np.concatenate([cv2.Rodrigues(T[:3, :3])[0].ravel(), T[:3, 3]])
     return np.array([fx, fy, cx, cy, camera.readout_s, camera.depth_time_offset_s,
-                     camera.depth_scale], np.float64)
+                     camera.depth_scale, *pose], np.float64)
 
 
 def tracked_pairs(seq: Source, config: Config, max_frames: int | None, *,
@@ -151,17 +179,23 @@ def tracked_pairs(seq: Source, config: Config, max_frames: int | None, *,
 
 def pair_data(seq: Source, config: Config, ts: np.ndarray, poses: np.ndarray,
               pairs: list[tuple[int, int]], intr: Intrinsics,
-              tick: Callable[[], None] | None = None) -> PairData:
+              tick: Callable[[], None] | None = None, frames: dict | None = None) -> PairData:
     """The pairs' data (stacked ``PairData``, numpy) from the source's frames as the
-    tracker sees them (``preprocess``) and the tracked poses (for the velocities)."""
+    tracker sees them (``preprocess``) and the tracked poses (for the velocities).
+    ``frames``: preprocessed frames by index, read from and added to (None: a new dict)."""
     depth_t = getattr(seq, "depth_timestamps", None)
-    lags = np.zeros(len(ts)) if depth_t is None else \
-        np.asarray(depth_t, np.float64)[:len(ts)] - ts
-    frames: dict[int, object] = {}
+    lags = np.zeros(len(ts))  # depth time - colour time; 0 where the source does not say
+    if depth_t is not None:
+        if len(depth_t) < len(ts):
+            raise ValueError(f"{seq.name}: {len(depth_t)} depth timestamps for {len(ts)} "
+                             "frames")
+        lags = np.asarray(depth_t, np.float64)[:len(ts)] - ts
+    frames = {} if frames is None else frames
     kf_data: dict[int, tuple] = {}
     needed = sorted({k for p in pairs for k in p})
     for k in needed:
-        frames[k] = preprocess(*seq.load_frame(k), config)
+        if k not in frames:
+            frames[k] = preprocess(*seq.load_frame(k), config)
         if tick is not None:
             tick()
 
@@ -213,10 +247,12 @@ def calibrate(
     estimate (a subset of ``PARAMS``; the others are kept). ValueError when too few pairs
     were tracked (fewer than 10 or fewer than 5 keyframes)."""
     config = Config() if config is None else config
+    fit = tuple(n for name in fit for n in (DEPTH_POSE if name == "T_color_depth" else (name,)))
     unknown = sorted(set(fit) - set(PARAMS))
     if unknown:
         raise ValueError(f"calibrate: cannot fit {', '.join(unknown)}; it fits "
-                         f"{', '.join(PARAMS)}")
+                         f"{', '.join(PARAMS[:7])} and T_color_depth (or its "
+                         f"{', '.join(DEPTH_POSE)})")
     say = log or (lambda s: None)
     intr = Intrinsics(*(float(v) for v in seq.intrinsics))
     readout = readout_time(config, camera_readout(seq))
@@ -227,10 +263,11 @@ def calibrate(
     seconds = {"tracking": 0.0, "solving": 0.0}
     k_readout = PARAMS.index("readout_s")
     tracked_with = []
+    frames: dict = {}  # preprocessed frames, shared by the rounds (the readout changes none)
     for round_ in range(1, rounds + 1):
         tracked_with.append(readout)
         out = _round(seq, dataclasses.replace(config, readout_s=readout), max_frames, intr,
-                     readout, fit, iterations, progress, say, seconds)
+                     readout, fit, iterations, progress, say, seconds, frames)
         theta, sigma, free = out["theta"], out["sigma"], out["free"]
         moved = free[k_readout] > 0 and abs(theta[k_readout] - readout) > \
             0.5 * RESOLUTION[k_readout]
@@ -238,11 +275,17 @@ def calibrate(
             break
         readout = max(float(theta[k_readout]), 0.0)
         say(f"the readout moved to {1e3 * readout:.1f} ms: tracking again with it")
-    fx, fy, cx, cy, readout_new, offset, scale = theta
+    fx, fy, cx, cy, readout_new, offset, scale = theta[:7]
+    pose = start.T_color_depth
+    if np.any(theta[7:] != 0):  # the pose found relative to the start's (frames read with it)
+        delta = np.eye(4)
+        delta[:3, :3] = cv2.Rodrigues(np.asarray(theta[7:10], np.float64))[0]
+        delta[:3, 3] = theta[10:13]
+        pose = delta if pose is None else delta @ np.asarray(pose, np.float64)
     camera = start._replace(intrinsics=Intrinsics(fx, fy, cx, cy),
                             readout_s=max(readout_new, 0.0),
                             depth_time_offset_s=start.depth_time_offset_s + offset,
-                            depth_scale=start.depth_scale * scale)
+                            depth_scale=start.depth_scale * scale, T_color_depth=pose)
     n = out["pairs"]
     return Calibration(
         camera=camera, start=start,
@@ -258,7 +301,7 @@ def calibrate(
 
 def _round(seq: Source, config: Config, max_frames: int | None, intr: Intrinsics,
            readout: float, fit: tuple[str, ...], iterations: int, progress: bool,
-           say: Callable[[str], None], seconds: dict[str, float]) -> dict:
+           say: Callable[[str], None], seconds: dict[str, float], frames: dict) -> dict:
     """One round of ``calibrate``: track with ``config`` (its readout ``readout``), solve,
     and again without the parameters found not observable. Adds its times to
     ``seconds``."""
@@ -275,15 +318,16 @@ def _round(seq: Source, config: Config, max_frames: int | None, intr: Intrinsics
     needed = len({k for p in pairs for k in p})
     with tqdm(total=needed, desc="frames", unit="frame", disable=not progress,
               leave=False) as bar:
-        data = pair_data(seq, config, ts, poses, pairs, intr, tick=bar.update)
+        data = pair_data(seq, config, ts, poses, pairs, intr, tick=bar.update, frames=frames)
     T0 = np.stack([inverse_np(poses[i]) @ poses[j] for j, i in pairs]).astype(np.float32)
+    data, T0, _ = pad_pairs(data, T0)
     T0 = jax.vmap(Pose.from_matrix)(jnp.asarray(T0))
     pairs_dev = PairData(*(jnp.asarray(a) for a in data))
     knobs = solve_knobs(config)
-    clusters = np.array([j for j, _ in pairs])
+    clusters = np.array([j for j, _ in pairs] + [-1] * (len(T0.t) - len(pairs)))
     # the model's depth scale and time offset are relative to the start's (the frames were
     # read with it): 1 and 0; the readout absolute
-    theta0 = np.array([*intr, readout, 0.0, 1.0], np.float64)
+    theta0 = np.array([*intr, readout, 0.0, 1.0, *np.zeros(6)], np.float64)
     free = np.array([name in fit for name in PARAMS], np.float64)
     # the depth scale is a gauge of the cost (module doc): never fitted, always said
     free[PARAMS.index("depth_scale")] = 0.0

@@ -63,8 +63,8 @@ def bundled_pair():
     return seq, config, one
 
 
-def _theta(seq, readout=0.0, offset=0.0, scale=1.0):
-    return jnp.asarray([*seq.intrinsics, readout, offset, scale], jnp.float32)
+def _theta(seq, readout=0.0, offset=0.0, scale=1.0, pose=(0.0,) * 6):
+    return jnp.asarray([*seq.intrinsics, readout, offset, scale, *pose], jnp.float32)
 
 
 def test_at_the_defaults_the_model_is_the_trackers_level0_cost(bundled_pair):
@@ -149,7 +149,7 @@ def test_calibrate_refuses_an_output_folder_before_tracking(tmp_path, capsys):
 
 
 def test_calibrate_names_a_parameter_it_cannot_fit(tmp_path):
-    with pytest.raises(ValueError, match="cannot fit T_color_depth"):
+    with pytest.raises(ValueError, match="cannot fit focal_length"):
         from edgevo_jax.pipeline.calibrate import calibrate
 
-        calibrate(open_source(BUNDLED_CLIP), fit=("T_color_depth",))
+        calibrate(open_source(BUNDLED_CLIP), fit=("focal_length", "readout_s"))
