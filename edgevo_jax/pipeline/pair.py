@@ -129,10 +129,10 @@ def align(
     Success (``AlignResult.success``) is the tracker's notion: LOST when the solve cannot be
     used (``decision.lost_reason``: too few inliers, a non-finite pose, an ill-conditioned
     covariance), or when the source has fewer than ``Config.min_inliers`` edges with depth;
-    WEAK (usable, doubtful) for ``decision.weak_reason`` or a solve that went farther from
-    ``init`` than the basin without an ORB / SIFT start converging to it
-    (``recovery.confirm``, with ``Config.recovery_features``). The tracker's comparison
-    with the recent frames' inlier shares has no history here.
+    WEAK (usable, doubtful) for ``decision.weak_reason`` or a solve that no ORB / SIFT start
+    converges to (``recovery.confirm``; with ``Config.recovery_features`` off, every solve
+    is WEAK): OK rests on evidence beyond the distance fields, since the tracker's
+    comparison with the recent frames' inlier shares has no history here.
 
     The solve compiles once per image size and configuration structure; later calls reuse
     it (and share it with ``Odometry``'s). ValueError naming the argument for images of the
@@ -190,11 +190,15 @@ def align(
         return _lost(T_init, lost, int(res.inliers), inlier_share(res))
     reason = weak_reason(bool(np.any(target.edge_depth > 0)), res, config)
     basin, moved = basin_px(config), float(res.moved)
-    if reason is None and moved > basin and not recovery.confirm(
+    # OK needs evidence beyond the distance fields: a solve from matched image features
+    # converging to the same pose (a lone pair has no recent frames to compare with)
+    if reason is None and not recovery.confirm(
             target, kf, res, align=solve, intrinsics=intr, config=config,
             usable=lambda out: lost_reason(target.num_edges, out, config) is None):
         reason = (f"moved {moved:.0f} px from its start, past the {basin:.0f} px basin, not "
-                  "confirmed by features")
+                  "confirmed by features" if moved > basin else
+                  "not confirmed by features: a solve from matched ORB / SIFT keypoints did "
+                  "not converge to this pose (or none could be made)")
     cov = np.asarray(res.covariance, np.float64)
     information = np.linalg.inv(0.5 * (cov + cov.T))
     return AlignResult(True, orthonormalise_np(np.asarray(res.T_c_k, np.float64)),

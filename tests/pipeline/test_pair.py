@@ -63,6 +63,27 @@ def test_align_is_the_trackers_solve_in_the_documented_convention(bundled):
     assert np.degrees(rotation_angle_np(err)) < 0.3
 
 
+def test_align_calls_ok_only_what_features_confirm(bundled):
+    """Frame 0 against each later frame of the bundled clip from the identity: every OK is
+    within 2 cm and 2 degrees of the ground truth, and the pairs too far apart for the edge
+    alignment (frames 6-8, where it settles 10-15 cm and 5-6 degrees off) are WEAK, saying
+    that matched image features did not confirm them."""
+    rgb0, d0 = bundled.load_frame(0)
+    oks = 0
+    for k in range(1, len(bundled)):
+        rgb, d = bundled.load_frame(k)
+        out = align(rgb0, d0, rgb, d, intrinsics=bundled.intrinsics)
+        truth = inverse_np(gt_pose(bundled, k)) @ gt_pose(bundled, 0)
+        err = inverse_np(truth) @ out.transform
+        if out.state == "OK":
+            oks += 1
+            assert np.linalg.norm(err[:3, 3]) <= 0.02, k
+            assert np.degrees(rotation_angle_np(err)) <= 2.0, k
+        else:
+            assert out.reason is not None and "confirmed by features" in out.reason
+    assert oks >= 4  # the near pairs stay OK
+
+
 def test_align_compiles_once_and_takes_raw_depth_with_a_scale(bundled, monkeypatch):
     """Two pairs of one size: one trace of the solve. Raw uint16 depth with depth_scale gives
     the float-metres result bit for bit; an init near the answer converges to it."""
