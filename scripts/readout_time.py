@@ -44,35 +44,13 @@ from edgevo_jax.frontend.shutter import Shutter, shutter_rate, unroll_edges
 from edgevo_jax.geometry import inverse_np, log_np
 from edgevo_jax.image.preprocess import preprocess
 from edgevo_jax.io import json_safe
+from edgevo_jax.pipeline.calibrate import tracked_pairs
 from edgevo_jax.programs import program
 from edgevo_jax.provenance import machine_info
 
 DEFAULT_READOUTS_MS = (0, 5, 10, 15, 20, 25, 30, 35, 40, 50)
 
 _track = program(track, static_argnames="config")
-
-
-def tracked_pairs(seq: Any, config: Config, max_frames: int | None
-                  ) -> tuple[np.ndarray, np.ndarray, list[tuple[int, int]]]:
-    """Track ``seq``; returns timestamps (N,), poses T_world_cam (N, 4, 4) and the (keyframe,
-    frame) index pairs the tracker aligned (keyframes after the first frame, whose speed is
-    known; frames that are not their own keyframe; frames not lost)."""
-    from edgevo_jax.pipeline.run import run_sequence
-
-    keyframe_t: list[float] = []
-
-    def on_frame(result, rgb, frame, odo) -> None:
-        keyframe_t.append(odo.keyframe[0] if odo.keyframe is not None else float("nan"))
-
-    run = run_sequence(seq, config, progress=False, max_frames=max_frames, on_frame=on_frame)
-    ts = run.timestamps
-    index = {float(t): i for i, t in enumerate(ts)}
-    pairs = []
-    for i, (t_kf, r) in enumerate(zip(keyframe_t, run.results, strict=True)):
-        j = index.get(float(t_kf))
-        if j is not None and 0 < j < i and r.state != "LOST":
-            pairs.append((j, i))
-    return ts, run.poses, pairs
 
 
 def pair_costs(seq: Any, config: Config, ts: np.ndarray, poses: np.ndarray,
