@@ -16,7 +16,7 @@ from ._common import _positive_float, _positive_int
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Add ``edgevo calibrate`` and its options to the subcommands ``sub``."""
     p = sub.add_parser(
-        "calibrate", help="estimate the camera (readout, depth time offset, pinhole) from a "
+        "calibrate", help="estimate the camera (rolling-shutter readout, depth time offset) from a "
         "recording and write a camera file",
         description="Track the recording with the starting camera, then solve the camera "
         "jointly with the tracked poses on the tracker's own cost. Parameters the motion "
