@@ -101,6 +101,13 @@ class Config:
     lost_share_ratio: float = 0.5
     """[-] Inlier share below this fraction of the recent highest, with no better start found:
     the frame is LOST."""
+    lost_extrapolate_s: float = 0.2
+    """[s] A LOST frame (without a motion prior) takes the constant-velocity prediction up to
+    this long after the last tracked frame, and holds the last pose beyond it. Why: the
+    prediction's error grows as a t^2 / 2 (a: the camera's angular acceleration), holding's
+    as w t; they cross at t = 2 w / a, 0.2 s for a hand-held camera turning at ~70 deg/s
+    and accelerating at ~12 rad/s^2 (fr1_rpy); measured: docs/decisions.md, "A LOST frame
+    holds the last pose"."""
     recovery_features: bool = True
     """[-] Recovery also starts from image features (ORB, then SIFT, matched, PnP;
     ``frontend/features.py``)."""

@@ -25,8 +25,9 @@ frame's ``FrameResult`` and the state is the one the next frame starts from. The
    the keyframe reason (``frontend.keyframes``), WEAK when the residuals are high, the frame
    has no depth, or the solve is doubtful (share under the doubt ratio, or it moved past the
    alignment's basin) and no feature start confirms it (``Confirm``);
-4. LOST: the pose is the prediction (finite, a rotation); the keyframe stays, unless the
-   loss outlasts ``kf_max_interval_s`` (a new keyframe at the guess);
+4. LOST: the pose is the prediction (finite, a rotation) within ``lost_extrapolate_s`` of
+   the last tracked frame or with a motion prior, else the last pose, held; the keyframe stays,
+   unless the loss outlasts ``kf_max_interval_s`` (a new keyframe at the guess);
 5. a new keyframe is built on refined poses only (``Handover`` first); when its selection
    finds too few edges the old keyframe stays.
 This module runs no JAX: each rule is tested with plain numbers (tests/pipeline/test_decision.py).
@@ -342,7 +343,11 @@ def decide(state: TrackerState, ev: Evidence, config: Config) -> Decision:
         handed = bool(ev.handover)
     if lost is None:
         pose = new.keyframe.pose @ inverse_np(T_c_k)
-    else:
+    elif ev.prior is None and facts.timestamp - (
+            state.tracked_t if state.tracked_t is not None else kf.timestamp
+    ) > config.lost_extrapolate_s:  # too long for the last velocity: the last pose, held
+        pose = new.motion.poses[-1]
+    else:  # constant velocity over a short gap; a motion prior (an IMU, wheels) is evidence
         pose = new.motion.predict(ev.prior) if handed else ev.predicted
         # lost frames in a row extrapolate again and again: keep R a rotation, stay finite
         pose = orthonormalise_np(pose) if np.all(np.isfinite(pose)) else pose

@@ -83,11 +83,11 @@ def made(ask: MakeKeyframe, *, pose: np.ndarray | None = None) -> NewKeyframe:
 
 
 def conclude(st: TrackerState, res, fa: FrameFacts, *, found="unused", confirmed=None,
-             handover=(), make=made, predicted=None, moved_intrinsics=False):
+             handover=(), make=made, predicted=None, moved_intrinsics=False, prior=None):
     """Run the decision as the driver does, answering its actions; the actions asked (by
     type), the final decision."""
-    ev = Evidence(fa, res, st.motion.predict() if predicted is None else predicted,
-                  intrinsics_moved=moved_intrinsics)
+    ev = Evidence(fa, res, st.motion.predict(prior) if predicted is None else predicted,
+                  prior=prior, intrinsics_moved=moved_intrinsics)
     asked = []
     for _ in range(5):
         d = decide(st, ev, CFG)
@@ -203,20 +203,38 @@ def test_tracked_frame_state():
 
 
 def test_lost_frame_state():
-    """A LOST frame: the prediction (a rotation, orthonormalised), no covariance, no share;
-    the share history and the lost clock unchanged; the keyframe kept; not plain."""
+    """A LOST frame 0.1 s after the last tracked one: the prediction (a rotation,
+    orthonormalised), no covariance, no share; the share history and the lost clock
+    unchanged; the keyframe kept; not plain."""
     s0 = state()
-    predicted = s0.motion.predict()
     _, d = conclude(s0, solve(0.05), facts(), found=None)
-    np.testing.assert_allclose(d.result.pose, predicted)
+    np.testing.assert_allclose(d.result.pose, s0.motion.predict())
     assert d.result.covariance is None and d.result.inlier_share is None
     assert d.state.shares == s0.shares and d.state.tracked_t == s0.tracked_t
     assert d.state.keyframe == s0.keyframe and not d.plain
 
 
-def test_lost_frame_never_takes_a_non_finite_pose():
+def test_lost_frame_long_after_the_last_tracked_one_holds_the_last_pose():
+    """Past ``lost_extrapolate_s`` since the last tracked frame the velocity says too
+    little: the last pose, held; a motion prior still gives the pose."""
+    s0 = state(tracked_t=0.9)
+    t = 0.9 + CFG.lost_extrapolate_s + 0.05
+    assert not np.allclose(s0.motion.predict(), s0.motion.poses[-1])  # a moving camera
+    _, d = conclude(s0, solve(0.05), facts(t), found=None)
+    np.testing.assert_array_equal(d.result.pose, s0.motion.poses[-1])
+    prior = shift(0.02)
+    _, d = conclude(s0, solve(0.05), facts(t), found=None, prior=prior)
+    np.testing.assert_allclose(d.result.pose, s0.motion.poses[-1] @ prior, atol=1e-12)
+
+
+def test_lost_frame_with_a_prior_takes_its_prediction_and_never_a_non_finite_pose():
     s0 = state()
-    _, d = conclude(s0, solve(0.05), facts(), found=None, predicted=np.full((4, 4), np.inf))
+    prior = shift(0.02)
+    _, d = conclude(s0, solve(0.05), facts(), found=None, prior=prior,
+                    predicted=s0.motion.predict(prior))
+    np.testing.assert_allclose(d.result.pose, s0.motion.poses[-1] @ prior, atol=1e-12)
+    _, d = conclude(s0, solve(0.05), facts(), found=None, prior=prior,
+                    predicted=np.full((4, 4), np.inf))
     np.testing.assert_array_equal(d.result.pose, s0.motion.poses[-1])
 
 
