@@ -46,7 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..backend.schur import eliminate_blocks
-from ..camera import Intrinsics
+from ..camera import Intrinsics, unproject
 from ..derive import SolveKnobs
 from ..frontend.depth import depth_valid
 from ..frontend.residuals import consistency_dots_known
@@ -115,8 +115,9 @@ def _move(pts: jnp.ndarray, vel: jnp.ndarray, dt: jnp.ndarray) -> jnp.ndarray:
     return pts + dt * (jnp.cross(w[:, None], pts, axis=0) + v[:, None])
 
 
-def _unproject(fx, fy, cx, cy, uv, z):
-    return jnp.stack([(uv[0] - cx) / fx * z, (uv[1] - cy) / fy * z, z])
+def _unproject(intr: Intrinsics, uv: jnp.ndarray, z: jnp.ndarray) -> jnp.ndarray:
+    """``camera.unproject`` by depth z (K,), which may be 0 (a missing depth)."""
+    return unproject(intr, uv, jnp.ones_like(z)) * z
 
 
 def pair_residuals(xi: jnp.ndarray, theta: jnp.ndarray, T0: Pose, pair: PairData,
@@ -136,7 +137,7 @@ def pair_residuals(xi: jnp.ndarray, theta: jnp.ndarray, T0: Pose, pair: PairData
     mid = 0.5 * (height - 1)
     # keyframe edges: depth read by the depth camera (its pose, its time), on the colour ray,
     # then unrolled
-    ray = _unproject(fx, fy, cx, cy, pair.uv, jnp.ones_like(pair.z))
+    ray = _unproject(intr, pair.uv, jnp.ones_like(pair.z))
     z = jnp.where(pair.valid, scale * pair.z, 1.0)
     z_ray = _move(R_cd @ (ray * z) + t_cd[:, None], pair.vel_k, pair.lag_k + offset)[2]
     P = ray * jnp.where(z_ray > 1e-6, z_ray, z)
@@ -147,7 +148,7 @@ def pair_residuals(xi: jnp.ndarray, theta: jnp.ndarray, T0: Pose, pair: PairData
     r, grad, inside = bilinear_with_grad(pair.field, uv_f)
     ok = inside & (pts_f[2] > 1e-6) & pair.valid
     # depth points: keyframe depth camera -> colour keyframe -> frame -> frame depth camera
-    D = _unproject(fx, fy, cx, cy, pair.dpix, scale * pair.dz)
+    D = _unproject(intr, pair.dpix, scale * pair.dz)
     D = _move(R_cd @ D + t_cd[:, None], pair.vel_k, pair.lag_k + offset)
     n = pair.normals
     q = _move(T.apply(D), pair.vel_f, -(pair.lag_f + offset))
@@ -160,7 +161,7 @@ def pair_residuals(xi: jnp.ndarray, theta: jnp.ndarray, T0: Pose, pair: PairData
     ui = jax.lax.stop_gradient(jnp.clip(jnp.round(u), 0, w - 1)).astype(jnp.int32)
     vi = jax.lax.stop_gradient(jnp.clip(jnp.round(v), 0, h - 1)).astype(jnp.int32)
     d = pair.depth[vi, ui]
-    p_c = _unproject(fx, fy, cx, cy, jnp.stack([ui, vi]).astype(q.dtype), scale * d)
+    p_c = _unproject(intr, jnp.stack([ui, vi]).astype(q.dtype), scale * d)
     r_d = focal / zq * jnp.sum(nq * (q - p_c), axis=0)
     ok_d = inside_d & (d > 0) & depth_valid(n)
     return (r, jnp.where(ok_d, r_d, 0.0)), (uv_f, ok, grad, ok_d)

@@ -343,9 +343,8 @@ def decide(state: TrackerState, ev: Evidence, config: Config) -> Decision:
         handed = bool(ev.handover)
     if lost is None:
         pose = new.keyframe.pose @ inverse_np(T_c_k)
-    elif ev.prior is None and facts.timestamp - (
-            state.tracked_t if state.tracked_t is not None else kf.timestamp
-    ) > config.lost_extrapolate_s:  # too long for the last velocity: the last pose, held
+    elif ev.prior is None and since > config.lost_extrapolate_s:
+        # too long for the last velocity: the last pose, held
         pose = new.motion.poses[-1]
     else:  # constant velocity over a short gap; a motion prior (an IMU, wheels) is evidence
         pose = new.motion.predict(ev.prior) if handed else ev.predicted
