@@ -117,6 +117,11 @@ class Config:
     ``docs/decisions.md``, "The depth residual"."""
     depth_points: int = 256
     """[points] Keyframe depth points with ``depth_residual``."""
+    depth_weight: float = 1.0
+    """[-] Weight of the depth residual's normal equations against the edges' (both in
+    pixels of the level, Huber-weighted alike). Why: with equal weights a depth point
+    counts as much as an edge; learnt by gradients on the shared clips, see
+    ``docs/decisions.md``, "The depth residual's weight"."""
     readout_s: float | None = None
     """[s] Rolling shutter: the rgb camera's readout time, top row to bottom row; 0: a global
     shutter; None: the camera's own (the source's ``readout_s``; ``frontend/shutter.py``)."""
@@ -185,6 +190,8 @@ class Config:
         for name in ("max_edges", "num_edges", "cell_size", "max_per_cell", "depth_points"):
             if getattr(self, name) < 1:
                 raise ValueError(f"Config.{name} must be positive")
+        if not self.depth_weight >= 0:
+            raise ValueError("Config.depth_weight must be >= 0 (0: the edges alone)")
         if self.logdet_lambda <= 0 or not 0 < self.greedy_epsilon < 1:
             raise ValueError("Config needs logdet_lambda > 0 and 0 < greedy_epsilon < 1")
         if not 0.0 < self.min_depth < self.max_depth:

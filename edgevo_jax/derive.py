@@ -7,7 +7,8 @@ Tracker (``align.track``, ``chunk``, ``batch``):
 - static: ``SolveStructure`` (the number of pyramid levels);
 - ``readout_time``: the rolling shutter's readout time (the config's, else the camera's);
 - traced: ``SolveKnobs`` (per-level Huber radius and gate, iterations, eta, step tolerance,
-  reject limit; learnt Params override the Huber radii, eta and the weighting model).
+  reject limit, the depth residual's weight; learnt Params override the Huber radii, eta
+  and the weighting model).
 
 Window (``refine.refine``, ``local_map``):
 - ``window_config(config)``: the refinement's ``MappingConfig``, the same for
@@ -41,7 +42,8 @@ class SolveKnobs(NamedTuple):
     """The numeric settings of the solve as arrays (a pytree, traced), so that one compiled
     program serves many configurations (``batch.py`` vmaps over them): per level huber_delta
     (L,) and max_residual (L,) in that level's pixels, iterations (L,) int32; eta (),
-    step_tol () and max_rejects () int32. ``weighting``: the learnable per-edge weighting
+    step_tol () and max_rejects () int32; depth_weight (), the depth residual's share of the
+    normal equations at level 0. ``weighting``: the learnable per-edge weighting
     model (``robust.EdgeWeighting``, from ``params.solve_knobs_of``), or None (the plain
     tracker; a None compiles without it)."""
 
@@ -51,6 +53,7 @@ class SolveKnobs(NamedTuple):
     iterations: jnp.ndarray
     step_tol: jnp.ndarray
     max_rejects: jnp.ndarray
+    depth_weight: jnp.ndarray
     weighting: EdgeWeighting | None = None
 
 
@@ -77,6 +80,7 @@ def solve_knobs(
         iterations=np.asarray(config.iterations, np.int32),
         step_tol=np.asarray(config.step_tol, np.float32),
         max_rejects=np.asarray(config.max_rejects, np.int32),
+        depth_weight=np.asarray(config.depth_weight, np.float32),
         weighting=weighting,
     )
 

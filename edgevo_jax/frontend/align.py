@@ -117,7 +117,8 @@ def normal_equations(
     delta, gate = knobs.huber_delta[level], knobs.max_residual[level]
     mask = kf.valid & ok & (r <= gate) & consistent
     if kf.depth_pts is not None and edge_map.depth is not None and level == 0:
-        extra = depth_system(T, kf, edge_map.depth, intr, level, delta, gate)
+        extra = knobs.depth_weight * depth_system(T, kf, edge_map.depth, intr, level, delta,
+                                                  gate)
     else:
         extra = None
     if knobs.weighting is None:
