@@ -1,7 +1,9 @@
 """Learning the tracker's weights by gradients: ``Params`` (the learnable numbers, apart
 from the static ``Config``), the smooth training mode (``track_smooth``), the differentiable
-alignment with its two adjoints, and pose losses against ground truth."""
+alignment with its two adjoints, the depth residual's weight by implicit differentiation of
+the plain solve (``depth_weight_gradient``), and pose losses against ground truth."""
 
+from .balance import WeightGradient, depth_weight_gradient
 from .differentiable import (
     ADJOINTS,
     CONSISTENCY,
@@ -30,7 +32,9 @@ __all__ = [
     "INTERPOLATIONS",
     "Params",
     "Smoothing",
+    "WeightGradient",
     "ate_loss",
+    "depth_weight_gradient",
     "edge_magnitudes",
     "level_system",
     "newton_decrement",
