@@ -23,8 +23,9 @@ frame's ``FrameResult`` and the state is the one the next frame starts from. The
 2. still under ``lost_share_ratio`` of that reference from every start: LOST;
 3. tracked: the pose from the keyframe (an earlier one found by the search takes over),
    the keyframe reason (``frontend.keyframes``), WEAK when the residuals are high, the frame
-   has no depth, or the solve is doubtful (share under the doubt ratio, or it moved past the
-   alignment's basin) and no feature start confirms it (``Confirm``);
+   has no depth, or the solve is doubtful (share under the doubt ratio, it moved past the
+   alignment's basin, or it comes more than ``lost_extrapolate_s`` after the last tracked
+   frame) and no feature start confirms it (``Confirm``);
 4. LOST: the pose is the prediction (finite, a rotation) within ``lost_extrapolate_s`` of
    the last tracked frame or with a motion prior, else the last pose, held; the keyframe stays,
    unless the loss outlasts ``kf_max_interval_s`` (a new keyframe at the guess);
@@ -322,7 +323,8 @@ def decide(state: TrackerState, ev: Evidence, config: Config) -> Decision:
             dt=facts.timestamp - kf.timestamp, config=config)
         weak = weak_reason(facts.has_depth, res, config)
         if weak is None and not confirmed:
-            weak = _doubt_reason(res, reference, config, ev.confirmed)
+            gap = None if state.tracked_t is None else facts.timestamp - state.tracked_t
+            weak = _doubt_reason(res, reference, config, ev.confirmed, gap)
             if weak is _ASK:
                 return Decision(state, None, (Confirm(kf, res),))
         kf = dataclasses.replace(kf, inlier_counts=(*kf.inlier_counts, int(res.inliers)))
@@ -379,22 +381,28 @@ def decide(state: TrackerState, ev: Evidence, config: Config) -> Decision:
 _ASK = object()  # _doubt_reason: the confirmation is needed and was not asked yet
 
 
-def _doubt_reason(res, reference: float | None, config: Config, confirmed: bool | None):
+def _doubt_reason(res, reference: float | None, config: Config, confirmed: bool | None,
+                  gap: float | None = None):
     """Why a usable solve nothing independent confirmed is doubtful (WEAK): its share stayed
-    under ``doubt_share_ratio`` of the recent frames' from every start, or it moved farther
-    from its start than the alignment's basin (``derive.basin_px``) and no feature start
-    converges to it (``confirmed``: the ``Confirm`` answer; ``_ASK`` while not asked)."""
+    under ``doubt_share_ratio`` of the recent frames' from every start; or it moved farther
+    from its start than the alignment's basin (``derive.basin_px``), or its frame comes more
+    than ``lost_extrapolate_s`` after the last tracked one (``gap``, s: a start predicted
+    across a gap that long is no evidence, and the recent shares say little of a view that
+    far), and no feature start converges to it (``confirmed``: the ``Confirm`` answer;
+    ``_ASK`` while not asked)."""
     doubt = config.doubt_share_ratio
     if under(res, reference, doubt):
         return (f"inlier share {inlier_share(res):.2f} under {doubt:g} x the recent "
                 f"{reference:.2f}, not confirmed by features")
     basin, moved = basin_px(config), float(res.moved)
-    if moved > basin:
+    far = gap is not None and gap > config.lost_extrapolate_s
+    if moved > basin or far:
         if confirmed is None:
             return _ASK
         if not confirmed:
             return (f"moved {moved:.0f} px from its start, past the {basin:.0f} px basin, not "
-                    "confirmed by features")
+                    "confirmed by features" if moved > basin else
+                    f"{gap:.2f} s after the last tracked frame, not confirmed by features")
     return None
 
 
