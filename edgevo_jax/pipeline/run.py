@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -36,6 +37,7 @@ from ..image.preprocess import Frame, start_preprocess
 from ..io import TrajectoryWriter, matrices_to_poses7, poses7_to_matrices
 from ..learn.params import Params
 from ..metrics import ate, rpe_per_second
+from ..programs import enable_cache
 from .odometry import Odometry
 from .results import LOST, OK, WEAK, FrameResult, FrameResults
 
@@ -133,7 +135,18 @@ def run_sequence(
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
     run = RunResult(config=config)
     writer = TrajectoryWriter(out) if out is not None else None
-    bar = tqdm(total=n, desc=seq.name, unit="frame", disable=not progress, leave=False)
+    if progress:
+        _announce_compile(seq, config, params)
+    bar = None  # made after the first frame: its rate and ETA leave the compiling out
+
+    def advance() -> None:
+        nonlocal bar
+        if bar is None:
+            bar = tqdm(total=n, initial=1, desc=seq.name, unit="frame", disable=not progress,
+                       leave=False)
+        else:
+            bar.update(1)
+        bar.set_postfix(kf=odo.num_keyframes, refresh=False)
     ready = None  # (frame, timestamp, preprocess ms, rgb) decoded and pre-processed, not submitted
     shown = None  # the rgb and Frame of the frame in flight (for on_frame)
     t_prev = time.perf_counter()
@@ -169,8 +182,7 @@ def run_sequence(
                 if on_frame is not None:  # not counted in the frame times
                     on_frame(result, shown[0], shown[1], odo)
                 t_prev = time.perf_counter() if on_frame is not None else now
-                bar.update(1)
-                bar.set_postfix(kf=odo.num_keyframes, refresh=False)
+                advance()
     except BaseException as exc:
         run.stopped_at = len(run.results)
         kept = ""
@@ -181,13 +193,35 @@ def run_sequence(
         exc.run_result = run  # type: ignore[attr-defined]  # the partial RunResult
         raise
     finally:
-        bar.close()
+        if bar is not None:
+            bar.close()
         odo.close()
         run.num_keyframes = odo.num_keyframes
         run.mapping_worker_ms = odo.mapping_worker_ms
     if writer is not None:
         writer.close()
     return run
+
+
+#: (image size, configuration, learnt params or not) whose compiling this process announced
+_announced: set[tuple] = set()
+
+
+def _announce_compile(seq: Source, config: Config, params: Params | None) -> None:
+    """One line on stderr, before the first frame of the first run of a configuration and
+    image size in this process: the first frame compiles the tracker's programs (or loads
+    them from the on-disk cache), once per configuration and image size."""
+    key = (getattr(seq, "width", None), getattr(seq, "height", None), config,
+           params is None)
+    if key in _announced:
+        return
+    _announced.add(key)
+    folder = enable_cache()
+    where = (f"or loads them from {folder} (1-3 s) where a run kept them" if folder is not None
+             else "(the program cache is off: EDGEVO_CACHE_DIR is empty)")
+    print(f"{seq.name}: the first frame compiles the tracker's programs for this "
+          f"configuration and image size, once (15-40 s on a quiet 2-core CPU), {where}",
+          file=sys.stderr, flush=True)
 
 
 def track_in_chunks(odo: Odometry, frames: list[Frame], timestamps: list[float], *,

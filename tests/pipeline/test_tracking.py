@@ -86,6 +86,21 @@ def test_first_pose_comes_from_the_ground_truth(bundled):
     np.testing.assert_allclose(run.poses[0][:3, 3], gt_p[i, :3])
 
 
+def test_the_compiling_is_announced_once_and_kept_out_of_the_bar(bundled, capsys):
+    """With progress, one line before the first frame of a configuration and image size
+    says it compiles (once per process); the bar starts at the second frame, so its rate
+    counts tracked frames only; without progress nothing is printed."""
+    config = Config(seed=123)  # a configuration no other test of this process announced
+    run_sequence(bundled, config, progress=True, max_frames=3)
+    err = capsys.readouterr().err
+    assert err.count("the first frame compiles the tracker's programs") == 1, err
+    assert "1/3" in err and "0/3" not in err  # the bar was made after the first frame
+    run_sequence(bundled, config, progress=True, max_frames=3)
+    assert "compiles" not in capsys.readouterr().err
+    run_sequence(bundled, config.replace(seed=124), progress=False, max_frames=2)
+    assert capsys.readouterr().err == ""
+
+
 def test_streaming_api_rejects_time_going_back(bundled):
     odo = Odometry(Config(), bundled.intrinsics)
     rgb, depth = bundled.load_frame(0)
