@@ -119,9 +119,9 @@ class Config:
     """[points] Keyframe depth points with ``depth_residual``."""
     depth_weight: float = 1.0
     """[-] Weight of the depth residual's normal equations against the edges' (both in
-    pixels of the level, Huber-weighted alike). Why: with equal weights a depth point
-    counts as much as an edge; learnt by gradients on the shared clips, see
-    ``docs/decisions.md``, "The depth residual's weight"."""
+    pixels of the level, Huber-weighted alike). Why 1: a depth point counts as much as an
+    edge; the weight learnt by gradients (``learn.depth_weight_gradient``) tracked worse over
+    seeds and frame rates: ``docs/decisions.md``, "The depth residual's weight"."""
     readout_s: float | None = None
     """[s] Rolling shutter: the rgb camera's readout time, top row to bottom row; 0: a global
     shutter; None: the camera's own (the source's ``readout_s``; ``frontend/shutter.py``)."""
