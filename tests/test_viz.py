@@ -341,7 +341,7 @@ def test_missing_matplotlib_is_named(tmp_path: Path, capsys: pytest.CaptureFixtu
     from edgevo_jax.viz import require_matplotlib
 
     monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ImportError
-    with pytest.raises(ImportError, match=r"pip install edgevo_jax\[viz\]"):
+    with pytest.raises(ImportError, match=r"pip install 'edgevo_jax\[viz\]'"):
         require_matplotlib()
     rc, _, err = cli(["plot", "configs", str(bench_json(tmp_path))], capsys)
-    assert rc == 2 and "pip install edgevo_jax[viz]" in err
+    assert rc == 2 and "pip install 'edgevo_jax[viz]'" in err

@@ -17,7 +17,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     """Add ``edgevo plot`` and its figures' options to the subcommands ``sub``."""
     plot = sub.add_parser("plot", help="draw a figure as a PNG (needs matplotlib)",
                           description="Draw one figure as a PNG (needs matplotlib: "
-                                      "pip install edgevo_jax[viz]).")
+                                      "pip install 'edgevo_jax[viz]').")
     kinds = plot.add_subparsers(dest="figure", required=True)
 
     def common(p: argparse.ArgumentParser, default_out: str) -> None:

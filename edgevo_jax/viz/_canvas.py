@@ -21,13 +21,13 @@ STYLE = {
 MODE_ORDER = ("spg", "greedy", "random", "all")
 DPI = 120
 MISSING_MATPLOTLIB = (
-    "edgevo_jax.viz needs matplotlib: pip install edgevo_jax[viz] "
+    "edgevo_jax.viz needs matplotlib: pip install 'edgevo_jax[viz]' "
     "(or pip install 'matplotlib>=3.7')"
 )
 
 
 def require_matplotlib() -> None:
-    """Raise ImportError naming ``pip install edgevo_jax[viz]`` when matplotlib is missing
+    """Raise ImportError naming ``pip install 'edgevo_jax[viz]'`` when matplotlib is missing
     (call it before expensive work whose only purpose is a plot)."""
     try:
         import matplotlib  # noqa: F401
