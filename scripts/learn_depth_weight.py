@@ -55,7 +55,7 @@ from edgevo_jax.geometry import inverse_np, rotation_angle_np
 from edgevo_jax.image.preprocess import preprocess
 from edgevo_jax.io import poses7_to_matrices
 from edgevo_jax.learn import depth_weight_gradient
-from edgevo_jax.pipeline.measure import accuracy, load_clip
+from edgevo_jax.pipeline.measure import accuracy, diverged_frames, groundtruth_at, load_clip
 from edgevo_jax.pipeline.run import run_sequence
 from edgevo_jax.provenance import machine_info
 from edgevo_jax.reports import int_list, write_json
@@ -185,17 +185,10 @@ def ate_runs(paths: list[Path], steps: list[int], seeds: list[int], weight: floa
 
 
 def _silently_wrong(seq, run) -> int:
-    """Frames called OK whose motion since the previous frame is off the truth's by more
-    than 5 cm or 5 deg (the anatomy's test, ``scripts/far_apart_anatomy.py``)."""
-    truth = [groundtruth_pose_at(seq, float(t), 0.02, interpolate=True) for t in run.timestamps]
-    n = 0
-    for k in range(1, len(run.poses)):
-        if truth[k] is None or truth[k - 1] is None or run.results[k].state != "OK":
-            continue
-        a, b = poses7_to_matrices(np.asarray([truth[k - 1], truth[k]]))
-        e = inverse_np(inverse_np(a) @ b) @ (inverse_np(run.poses[k - 1]) @ run.poses[k])
-        n += int(np.linalg.norm(e[:3, 3]) > 0.05 or np.degrees(rotation_angle_np(e)) > 5.0)
-    return n
+    """Frames called OK off the truth's motion from the previous frame
+    (``measure.diverged_frames``: silently wrong)."""
+    gt = groundtruth_at(seq, np.asarray(run.timestamps, np.float64))
+    return len(diverged_frames(np.asarray(run.poses), [r.state for r in run.results], gt))
 
 
 def main(argv: list[str] | None = None) -> int:

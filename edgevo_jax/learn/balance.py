@@ -73,8 +73,7 @@ def depth_weight_gradient(
                                 shutter).g
 
     zero = jnp.zeros(6, dtype)
-    A = jax.jacfwd(F, argnums=0)(zero, w)
-    b = jax.jacfwd(F, argnums=1)(zero, w)
+    A, b = jax.jacfwd(F, argnums=(0, 1))(zero, w)
     A = A + jnp.finfo(dtype).eps * (jnp.abs(jnp.trace(A)) + 1.0) * jnp.eye(6, dtype=dtype)
     dxi_dw = -jnp.linalg.solve(A, b)
 
