@@ -8,7 +8,8 @@ Usage::
                                            [--out-json FILE]
 
 Cases: ``none`` (the clip itself: the reference every other case is read against, since the
-source's own camera is only nearly true), ``fx`` (calibration.txt states fx 1 % too large),
+source's own camera is only nearly true), ``fx`` / ``fy`` (calibration.txt states fx / fy
+1 % too large; fit them with ``--fit fx,fy,...``: the focal lengths are fitted on wide pairs),
 ``offset`` (depth timestamps 15 ms early: t_depth_true = t_file + 15 ms), ``scale`` (depth
 divided by 1.03), ``readout`` (a global shutter given where the clip's camera reads out in
 20 ms). Each case starts from the clip's camera (with the case's error) and fits
@@ -39,6 +40,7 @@ from edgevo_jax.provenance import machine_info
 CASES = {
     "none": ({}, None, 0.0),
     "fx": ({"fx_factor": 1.01}, "fx", None),  # truth: the clip's fx (the copy states 1.01x)
+    "fy": ({"fy_factor": 1.01}, "fy", None),
     "offset": ({"depth_time_offset_s": 0.015}, "depth_time_offset_s", 0.015),
     "scale": ({"depth_scale": 1.03}, "depth_scale", 1.03),
     "readout": ({}, "readout_s", None),  # truth: the clip's readout (started from 0)
@@ -74,10 +76,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             cal = calibrate(seq, Config(readout_s=start_readout), max_frames=args.max_frames,
                             fit=tuple(args.fit.split(",")))
             fx, fy, cx, cy = truth.intrinsics
-            true = dict(zip(PARAMS, (fx, fy, cx, cy, truth.readout_s,
+            true = dict(zip(PARAMS[:7], (fx, fy, cx, cy, truth.readout_s,
                                      truth.depth_time_offset_s, truth.depth_scale),
                             strict=True))
-            est = dict(zip(PARAMS, (*cal.camera.intrinsics, cal.camera.readout_s,
+            est = dict(zip(PARAMS[:7], (*cal.camera.intrinsics, cal.camera.readout_s,
                                     cal.camera.depth_time_offset_s, cal.camera.depth_scale),
                            strict=True))
             rows[case] = {"param": param, "truth": true, "estimate": est, "sigma": cal.sigma,
@@ -100,7 +102,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         worst = max(moved.items(), key=lambda kv: kv[1]) if moved else ("-", 0.0)
         s = sig.get(param)
         print(f"{case:8s} {param:20s} {truth:10.5g} {est[param]:10.5g} "
-              f"{'not observable' if s is None else f'{s:9.3g}'}   {worst[0]} {worst[1]:.2f}")
+              f"{'not observable' if s is None else f'{s:9.3g}'}   {worst[0]} {worst[1]:.2f}"
+              f"   (estimate - none's: {est[param] - ref[param]:.4g})")
+        row["from_reference"] = est[param] - ref[param]
         row["truth_used"] = truth
         row["others_moved_sigmas"] = moved
     result = {"command": shlex.join(["python", "scripts/calibration_recovery.py", *argv]),

@@ -38,8 +38,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fit", default=None, metavar="NAMES",
                    help="comma-separated parameters to estimate, of fx, fy, cx, cy, "
                         "readout_s, depth_time_offset_s (default: readout_s,"
-                        "depth_time_offset_s; the pinhole is experimental; depth_scale is "
-                        "never observable from one RGB-D camera)")
+                        "depth_time_offset_s; fx and fy are fitted on frames 5-15 deg apart, "
+                        "for cameras without lens distortion; depth_scale is never "
+                        "observable from one RGB-D camera)")
     p.add_argument("--rounds", type=_positive_int, default=3, metavar="N",
                    help="at most N rounds of tracking and solving: another round tracks "
                         "again with the readout found while it moved by more than 2 ms "

@@ -14,7 +14,9 @@ is run again without it. The depth scale never is observable from one RGB-D came
 scaling the world and the depth together leaves every image as it is (the poses'
 translations absorb it); its line says so. The depth camera's pose (``T_color_depth``,
 ``fit`` name ``"T_color_depth"``) is estimated relative to the start's, with which the frames
-were read.
+were read. When a focal length is fitted, each keyframe is also paired with later frames
+5-15 deg of rotation on (``wide_pairs``): a focal-length error shows only through the
+motion between two images.
 """
 
 from __future__ import annotations
@@ -50,13 +52,22 @@ from ..learn.camera import (
     solve_camera,
 )
 
-__all__ = ["DEFAULT_FIT", "DEPTH_POSE", "RESOLUTION", "Calibration", "calibrate", "tracked_pairs"]
+__all__ = ["DEFAULT_FIT", "DEPTH_POSE", "RESOLUTION", "WIDE_ANGLES_DEG", "Calibration", "calibrate",
+           "tracked_pairs", "wide_pairs"]
 
-#: What ``calibrate`` fits unless told: the readout and the depth time offset. The pinhole
-#: is opt-in (``fit``): on the shared clips its estimate ran off along directions the
-#: cost hardly sees (fy and cy together by 100 px) instead of recovering a 1 % error in fx
-#: (docs/decisions.md, "Calibrating the camera").
+#: What ``calibrate`` fits unless told: the readout and the depth time offset. The focal
+#: lengths are opt-in (``fit=("fx", "fy", ...)``): they are observable from the wide pairs
+#: (``wide_pairs``), but on a camera whose lens distortion is removed with given
+#: coefficients they absorb that model's error (docs/decisions.md, "Calibrating the
+#: camera"). The principal point runs off along the rotations (not recovered).
 DEFAULT_FIT = ("readout_s", "depth_time_offset_s")
+
+#: The rotations (deg) from a keyframe at which ``wide_pairs`` pairs it with a later frame
+#: when a focal length is fitted. A focal-length error shows only through the motion between
+#: the two images, at second order in the rotation (rotating by 15 deg, 1 % of f moves an
+#: edge at the image's side by ~1.5 px, at the tracker's 3-5 deg by ~0.1); past ~15 deg the
+#: two images of a 60-deg field of view share too little.
+WIDE_ANGLES_DEG = (5.0, 10.0, 15.0)
 
 #: The smallest 1-sigma that counts as knowing a parameter (``PARAMS`` order): 0.5 % of a
 #: 500 px focal length, 2.5 px for the principal point, 4 ms for the readout and the time
@@ -175,6 +186,34 @@ def tracked_pairs(seq: Source, config: Config, max_frames: int | None, *,
         if j is not None and 0 < j < i and r.state != "LOST":
             pairs.append((j, i))
     return ts, np.asarray(run.poses, np.float64), pairs
+
+
+def wide_pairs(poses: np.ndarray, pairs: list[tuple[int, int]],
+               angles_deg: tuple[float, ...] = WIDE_ANGLES_DEG) -> list[tuple[int, int]]:
+    """Pairs of each keyframe of ``pairs`` with a later tracked frame (one of ``pairs``'
+    frames) whose tracked rotation from it is nearest each of ``angles_deg`` and within 25 %
+    of it, where such a frame exists before the rotation first exceeds the largest angle;
+    the pairs not already in ``pairs``. ``poses``: T_world_cam (N, 4, 4)."""
+    tracked = sorted({i for _, i in pairs} | {j for j, _ in pairs})
+    have = set(pairs)
+    out: list[tuple[int, int]] = []
+    for j in sorted({j for j, _ in pairs}):
+        later = [i for i in tracked if i > j]
+        angles = []
+        for i in later:
+            R = poses[j, :3, :3].T @ poses[i, :3, :3]
+            angle = math.degrees(math.acos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+            if angle > 1.25 * max(angles_deg):
+                break
+            angles.append((angle, i))
+        for target in angles_deg:
+            near = [(abs(a - target), i) for a, i in angles if abs(a - target) <= 0.25 * target]
+            if near:
+                pair = (j, min(near)[1])
+                if pair not in have:
+                    have.add(pair)
+                    out.append(pair)
+    return out
 
 
 def pair_data(seq: Source, config: Config, ts: np.ndarray, poses: np.ndarray,
@@ -313,6 +352,11 @@ def _round(seq: Source, config: Config, max_frames: int | None, intr: Intrinsics
         raise ValueError(f"calibrate: only {len(pairs)} frame-keyframe pairs over {keyframes} "
                          f"keyframes were tracked in {seq.name}; it needs at least 10 over 5 "
                          "(a longer recording, or one the tracker follows)")
+    if {"fx", "fy"} & set(fit):
+        wide = wide_pairs(poses, pairs)
+        say(f"{len(wide)} wide pairs (rotations {', '.join(f'{a:g}' for a in WIDE_ANGLES_DEG)} "
+            "deg from their keyframe) for the focal lengths")
+        pairs = pairs + wide
     t1 = time.perf_counter()
     say(f"{len(pairs)} frame-keyframe pairs over {keyframes} keyframes; reading their frames")
     needed = len({k for p in pairs for k in p})
