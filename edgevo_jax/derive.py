@@ -15,10 +15,15 @@ Window (``refine.refine``, ``local_map``):
   ``refine.refine(problem, config)`` and for the tracker's local map;
 - ``split_window`` / ``join_window``: its ``WINDOW_TRACED`` numbers (Huber radius, gate, eta)
   as arrays, the rest static.
+
+Both: ``program_structure(config)``, everything of a config that reaches the programs
+statically, and ``structural_fields(config)``, the settings that take a run off the
+defaults' programs (named before a run compiles).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from typing import TYPE_CHECKING, NamedTuple
 
 import jax.numpy as jnp
@@ -164,3 +169,45 @@ def join_window(structure: MappingConfig, numbers: tuple) -> MappingConfig:
     """The inverse of ``split_window``: the static part with the (possibly traced) numbers
     put back."""
     return structure._replace(**dict(zip(WINDOW_TRACED, numbers, strict=True)))
+
+
+# --- what the compiled programs depend on -------------------------------------------------
+def program_structure(config: Config) -> tuple:
+    """What of ``config`` reaches the compiled programs statically (their shapes, unrolled
+    loops and static arguments), hashable: two configurations with equal structures run the
+    same programs (the traced numbers apart), so a process or the program cache that holds
+    one's holds the other's. The tracker's levels and slot counts; the selection's static
+    options; the depth points; a rolling shutter or none; the window's static part, its
+    size, active slots and activation options. (The image size and the camera's own readout
+    are the source's, not the configuration's.)"""
+    selecting = config.selection != "all"
+    return (
+        solve_structure(config),
+        config.selection, config.edge_slots if selecting else config.max_edges,
+        (config.max_per_cell, config.logdet_lambda, config.canny_high, config.greedy_epsilon,
+         config.max_edges) if selecting else None,
+        config.depth_points if config.depth_residual else None,
+        config.readout_s == 0.0,
+        (split_window(window_config(config))[0], config.window_size,
+         config.active_per_keyframe, config.activation_cell,
+         config.activation_max_angle_deg) if config.mapping else None,
+    )
+
+
+def structural_fields(config: Config) -> list[str]:
+    """The fields in which ``config`` differs from ``Config()`` and whose default, put back
+    alone, changes ``program_structure(config)``: why a run with ``config`` compiles
+    programs that a run with the defaults does not (``num_edges`` beside ``selection=all``
+    is not one: it has no effect there)."""
+    default, own = Config(), program_structure(config)
+
+    def changes(name: str) -> bool:
+        try:
+            back = dataclasses.replace(config, **{name: getattr(default, name)})
+        except ValueError:  # tied to other fields (one value per level): it goes with them
+            return True
+        return program_structure(back) != own
+
+    return [f.name for f in dataclasses.fields(Config)
+            if getattr(config, f.name) != getattr(default, f.name) and changes(f.name)]
+

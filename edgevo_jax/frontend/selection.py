@@ -409,8 +409,8 @@ def candidate_size(n: int, config: Config) -> int:
 
 
 def bucket_sizes(config: Config) -> list[int]:
-    """Every padded size a keyframe can meet: the selection's candidate buffers
-    (``candidate_size``), and with ``selection=all`` the tracked slots (``_bucket``)."""
+    """Every padded size of the selection's candidate buffers (``candidate_size``) a
+    keyframe can meet."""
     sizes = _buckets(config.max_edges)
     if config.selection == "spg":
         return sorted({candidate_size(s, config) for s in sizes})
@@ -451,13 +451,6 @@ def pack_edges(cands: Candidates, idx: np.ndarray, size: int,
     if disc is not None:
         disc_slots[:n] = disc
     return KeyframeEdges(uv=uv, rho=rho, grad=grad, valid=valid, mag=mag, disc=disc_slots)
-
-
-def empty_edges(size: int) -> KeyframeEdges:
-    """``size`` slots and no edge in them (numpy; for compiling a slot count ahead)."""
-    none = Candidates(np.zeros((2, 0), np.float32), np.zeros(0, np.float32),
-                      np.zeros((2, 0), np.float32), np.zeros(0, np.float32))
-    return pack_edges(none, np.zeros(0, np.int64), size)
 
 
 def keyframe_edges(

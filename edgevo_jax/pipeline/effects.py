@@ -191,23 +191,21 @@ def make_keyframe(solver: Solver, mapper: Mapper | None, frame: Frame, ask: Make
 
 def warm_up(solver: Solver, mapper: Mapper | None, kf: Keyframe, frame: Frame) -> float:
     """At the first keyframe, before any frame is tracked: compile or load, and run once,
-    every program the run can need (the per-frame solve and the recovery's, for each slot
-    count a keyframe can have; the selection for each candidate buffer size; the window's
-    steps, on its worker), so that no frame waits for one. The keyframe's frame is solved
-    against itself and the result dropped. Returns its time (ms)."""
+    every program the run can need (the per-frame solve and the recovery's for the
+    keyframe's slot count; the selection for each candidate buffer size; the window's steps,
+    on its worker), so that no frame waits for one. With ``selection=all`` the slot count
+    follows the keyframe's edges (``selection._bucket``: 1024 to ``max_edges``, five sizes at
+    the default): a keyframe whose count is new compiles its two solves when it is made (a
+    recording meets one or two sizes; compiling all five first took 80 s here). The
+    keyframe's frame is solved against itself and the result dropped. Returns its time
+    (ms)."""
     t0 = time.perf_counter()
     warm_map = mapper.warm_up() if mapper is not None else None
     config = solver.config
     rel = (aligned_array(inverse_np(kf.pose) @ kf.pose, np.float32),) * 2
-    slots = selection.bucket_sizes(config) if config.selection == "all" \
-        else [kf.edges.valid.shape[0]]
-    for size in slots:
-        edges = kf.edges if size == kf.edges.valid.shape[0] else selection.empty_edges(
-            size)._replace(depth_pts=kf.edges.depth_pts, depth_normals=kf.edges.depth_normals)
-        rate = None if solver.readout_s <= 0 else np.float32(0.0)
-        kf_s = dataclasses.replace(kf, edges=edges)
-        jax.block_until_ready(solver.next(kf_s, frame, rel, rate))
-        solver.align(kf_s, frame, np.eye(4), rate, kf.pose)
+    rate = None if solver.readout_s <= 0 else np.float32(0.0)
+    jax.block_until_ready(solver.next(kf, frame, rel, rate))
+    solver.align(kf, frame, np.eye(4), rate, kf.pose)
     h, w = frame.shape
     selection.warm_up(config, intr=solver.intrinsics, width=w, height=h, reobs_a=solver.reobs_a)
     if warm_map is not None:

@@ -29,6 +29,7 @@ from tqdm import tqdm
 from ..config import Config
 from ..datasets.groundtruth import groundtruth_pose_at
 from ..datasets.source import Source, camera_readout
+from ..derive import structural_fields
 from ..frontend.align import TrackResult
 from ..frontend.chunk import track_chunk_jit
 from ..hostmem import aligned_stack, to_host
@@ -48,7 +49,7 @@ class RunResult(FrameResults):
     frame with image decoding excluded (ms; with pipelining this is the frame period), the
     decode times (ms); the start-up (s): from the start (``run_sequence``'s ``started``) to
     the first pose, which includes ``warm_up_s``, the tracker's compiling or loading of every
-    program the run needs (``Odometry._warm_up``); the local window's time per keyframe on
+    program the run needs (``effects.warm_up``); the local window's time per keyframe on
     its worker (ms)."""
 
     results: list[FrameResult] = field(default_factory=list)
@@ -222,6 +223,15 @@ def _announce_compile(seq: Source, config: Config, params: Params | None) -> Non
     print(f"{seq.name}: the first frame compiles the tracker's programs for this "
           f"configuration and image size, once (15-40 s on a quiet 2-core CPU), {where}",
           file=sys.stderr, flush=True)
+    changed = structural_fields(config)
+    if changed:
+        sets = ", ".join(f"{name}={getattr(config, name)}" for name in changed)
+        more = (" (with selection=all, a keyframe whose edges need a slot count not met "
+                "before, of 1024, 2048, 4096, ..., compiles its solves when it is made, "
+                "10-20 s)"
+                if config.selection == "all" else "")
+        print(f"{seq.name}: {sets} changes the programs' structure: they compile for it even "
+              f"where the defaults' are kept{more}", file=sys.stderr, flush=True)
 
 
 def track_in_chunks(odo: Odometry, frames: list[Frame], timestamps: list[float], *,

@@ -101,6 +101,29 @@ def test_the_compiling_is_announced_once_and_kept_out_of_the_bar(bundled, capsys
     assert capsys.readouterr().err == ""
 
 
+def test_a_structural_setting_is_named_before_compiling(bundled, capsys):
+    """The compile line names the settings that change the programs' structure (those that
+    take the run off the defaults' programs), and only those: not the traced numbers, not a
+    field without effect beside them. Nothing is compiled to say it."""
+    from edgevo_jax.derive import program_structure, structural_fields
+    from edgevo_jax.pipeline.run import _announce_compile
+
+    config = Config(selection="all", num_edges=256, huber_delta=(2.0, 2.0, 2.0), seed=7)
+    assert structural_fields(config) == ["selection"]
+    assert program_structure(config.replace(num_edges=128)) == program_structure(config)
+    assert structural_fields(Config(num_edges=256, iterations=(5, 5, 5))) == ["num_edges"]
+    two_levels = Config(iterations=(5, 5), huber_delta=(1.0, 1.0), max_residual=(5.0, 5.0))
+    assert structural_fields(two_levels) == ["iterations", "huber_delta", "max_residual"]
+    assert structural_fields(Config(mapping=False, readout_s=0.0)) == ["readout_s", "mapping"]
+    assert structural_fields(Config(depth_weight=3.0, eta=0.5, seed=2)) == []
+    _announce_compile(bundled, config, None)
+    err = capsys.readouterr().err
+    assert "selection=all changes the programs' structure" in err
+    assert "num_edges" not in err and "huber" not in err
+    _announce_compile(bundled, Config(seed=99), None)
+    assert "structure" not in capsys.readouterr().err
+
+
 def test_streaming_api_rejects_time_going_back(bundled):
     odo = Odometry(Config(), bundled.intrinsics)
     rgb, depth = bundled.load_frame(0)
