@@ -269,6 +269,13 @@ class LocalMap:
         scratch.window = [empty() for _ in range(n - 1)]
         scratch._activate(empty())
         scratch.window.append(empty())
+        problem, _ = scratch._problem()
+        prior = _marginalize_first_jit(problem, self._numbers, no_prior(problem),
+                                       np.arange(n, dtype=np.int32), config=self._structure)
+        prior = _marginalize_stale_jit(problem, self._numbers,
+                                       np.ones((n - 1, cfg.active_per_keyframe), bool), prior,
+                                       config=self._structure)
+        scratch.prior = _append_to_prior_jit(prior, np.eye(4, dtype=np.float32))
         scratch._refine()
 
     # -- steps ----------------------------------------------------------------------------

@@ -10,9 +10,7 @@ numbers, the intrinsics (which the window may refine) and the rolling shutter's 
 from __future__ import annotations
 
 import dataclasses
-import threading
 import time
-from concurrent.futures import Future
 from typing import NamedTuple
 
 import jax
@@ -65,7 +63,6 @@ class Solver:
             self.knobs = solve_knobs_of(params, config)
             self.reobs_a = float(np.asarray(params.reobs_a, np.float64))
         self._constants_key: tuple[float, ...] | None = None
-        self._warming: Future | None = None  # the recovery's solve compiling beside tracking
 
     def constants(self) -> tuple[Intrinsics, object]:
         """Intrinsics and solve knobs as device arrays, made once (and again when the window
@@ -101,29 +98,10 @@ class Solver:
         return track_next_jit(kf.edges, frame.dist, frame.edge_map, *rel, intr, knobs, rate,
                               config=self.structure)
 
-    def warm_beside(self, kf: Keyframe, frame: Frame, rate) -> None:
-        """Compile (or load) and run once ``dispatch``'s program on a thread of its own,
-        beside tracking: the first ``dispatch`` waits for it rather than compiling it a
-        second time."""
-        done: Future = Future()
-
-        def work() -> None:
-            try:
-                done.set_result(self.align(kf, frame, np.eye(4), rate, kf.pose))
-            except BaseException as err:  # handed to the first dispatch
-                done.set_exception(err)
-
-        self._warming = done
-        threading.Thread(target=work, name="edgevo-warm-recovery").start()
-
     def dispatch(self, kf: Keyframe, frame: Frame, T_c_k: np.ndarray, rate, last_pose):
         """The edge alignment of ``frame`` to ``kf`` from the start T_cur_kf, dispatched;
         ``rate``: the frame's shutter rate (None: a global shutter), with ``last_pose`` (the
         last frame's T_world_cam) as its previous one."""
-        if self._warming is not None and threading.current_thread().name != \
-                "edgevo-warm-recovery":
-            warming, self._warming = self._warming, None
-            warming.result()
         shutter = None if rate is None else Shutter(
             aligned_array(inverse_np(last_pose) @ kf.pose, np.float32), np.float32(rate))
         return _track_jit(kf.edges, frame.dist, frame.edge_map, np.asarray(T_c_k, np.float32),
@@ -213,26 +191,24 @@ def make_keyframe(solver: Solver, mapper: Mapper | None, frame: Frame, ask: Make
 
 def warm_up(solver: Solver, mapper: Mapper | None, kf: Keyframe, frame: Frame) -> float:
     """At the first keyframe, before any frame is tracked: compile or load, and run once,
-    the programs every frame needs (the per-frame solve for the keyframe's slot count; the
-    selection for each candidate buffer size), and start the others beside tracking: the
-    recovery's solve on a thread of its own (its first use waits for it, never compiles it
-    twice), the window's activation and refinement on its worker (its queue runs them
-    before the window's first keyframe). The window's marginalisation compiles when the
-    window first fills (a run shorter than the window never needs it). With
-    ``selection=all`` the slot count follows the keyframe's edges (``selection._bucket``:
-    1024 to ``max_edges``, five sizes at the default): a keyframe whose count is new
-    compiles its two solves when it is made (a recording meets one or two sizes; compiling
-    all five first took 80 s here). The keyframe's frame is solved against itself and the
-    result dropped. Returns its time (ms)."""
+    every program the run can need (the per-frame solve and the recovery's for the
+    keyframe's slot count; the selection for each candidate buffer size; the window's steps,
+    on its worker), so that no frame waits for one. With ``selection=all`` the slot count
+    follows the keyframe's edges (``selection._bucket``: 1024 to ``max_edges``, five sizes at
+    the default): a keyframe whose count is new compiles its two solves when it is made (a
+    recording meets one or two sizes; compiling all five first took 80 s here). The
+    keyframe's frame is solved against itself and the result dropped. Returns its time
+    (ms)."""
     t0 = time.perf_counter()
     warm_map = mapper.warm_up() if mapper is not None else None
     config = solver.config
     rel = (aligned_array(inverse_np(kf.pose) @ kf.pose, np.float32),) * 2
     rate = None if solver.readout_s <= 0 else np.float32(0.0)
     jax.block_until_ready(solver.next(kf, frame, rel, rate))
-    solver.warm_beside(kf, frame, rate)
+    solver.align(kf, frame, np.eye(4), rate, kf.pose)
     h, w = frame.shape
     selection.warm_up(config, intr=solver.intrinsics, width=w, height=h, reobs_a=solver.reobs_a)
-    del warm_map  # the worker's queue runs it before the window's first keyframe
+    if warm_map is not None:
+        warm_map.result()
     return (time.perf_counter() - t0) * 1e3
 

@@ -68,7 +68,6 @@ class Mapper:
                       if self.lag > 0 else None)
         self._pending: deque[tuple[int, object, Future]] = deque()  # (due frame, key, step)
         self.worker_ms: list[float] = []  # the window's time per keyframe, in order
-        self._warm: Future | None = None  # the window's programs compiling on the worker
 
     def warm_up(self) -> Future | None:
         """Compile or load the window's programs (``LocalMap.warm_up``): beside tracking on
@@ -76,8 +75,7 @@ class Mapper:
         if self._pool is None:
             self.local_map.warm_up()
             return None
-        self._warm = self._pool.submit(self.local_map.warm_up)
-        return self._warm
+        return self._pool.submit(self.local_map.warm_up)
 
     def add(self, key: object, pose: np.ndarray, edges: KeyframeEdges, frame: Frame,
             frame_index: int, row_twist: np.ndarray | None = None) -> Mapped | None:
@@ -93,9 +91,6 @@ class Mapper:
     def due(self, frame_index: int | None) -> list[Mapped]:
         """The refinements due at ``frame_index`` (None: all handed over), oldest first."""
         out = []
-        if self._warm is not None and self._pending:  # its failure, said once, first
-            warm, self._warm = self._warm, None
-            warm.result()
         while self._pending and (frame_index is None or self._pending[0][0] <= frame_index):
             _, key, future = self._pending.popleft()
             out.append(self._mapped(key, future.result()))
