@@ -57,9 +57,10 @@ __all__ = ["DEFAULT_FIT", "DEPTH_POSE", "RESOLUTION", "WIDE_ANGLES_DEG", "Calibr
 
 #: What ``calibrate`` fits unless told: the readout and the depth time offset. The focal
 #: lengths are opt-in (``fit=("fx", "fy", ...)``): they are observable from the wide pairs
-#: (``wide_pairs``), but on a camera whose lens distortion is removed with given
-#: coefficients they absorb that model's error (docs/decisions.md, "Calibrating the
-#: camera"). The principal point runs off along the rotations (not recovered).
+#: (``wide_pairs``) and come back on fr3_teddy, but on the fr1 fast clip fx came out 4 %
+#: above its calibration, with or without its lens distortion, and tracked worse
+#: (docs/decisions.md, "Calibrating the camera"). The principal point runs off along the
+#: rotations (not recovered).
 DEFAULT_FIT = ("readout_s", "depth_time_offset_s")
 
 #: The rotations (deg) from a keyframe at which ``wide_pairs`` pairs it with a later frame
