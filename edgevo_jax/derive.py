@@ -210,4 +210,3 @@ def structural_fields(config: Config) -> list[str]:
 
     return [f.name for f in dataclasses.fields(Config)
             if getattr(config, f.name) != getattr(default, f.name) and changes(f.name)]
-

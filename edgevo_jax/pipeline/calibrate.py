@@ -41,7 +41,7 @@ from ..datasets.base import Source, camera_readout
 from ..derive import readout_time, solve_knobs
 from ..frontend.depth import depth_points
 from ..frontend.selection import keyframe_edges
-from ..geometry import Pose, inverse_np, log_np
+from ..geometry import Pose, inverse_np, log_np, rotation_angle_np
 from ..image.preprocess import preprocess
 from ..learn.camera import (
     PARAMS,
@@ -195,22 +195,20 @@ def wide_pairs(poses: np.ndarray, pairs: list[tuple[int, int]],
     frames) whose tracked rotation from it is nearest each of ``angles_deg`` and within 25 %
     of it, where such a frame exists before the rotation first exceeds the largest angle;
     the pairs not already in ``pairs``. ``poses``: T_world_cam (N, 4, 4)."""
-    tracked = sorted({i for _, i in pairs} | {j for j, _ in pairs})
+    tracked = np.array(sorted({i for _, i in pairs} | {j for j, _ in pairs}))
+    reach = 1.25 * max(angles_deg)
     have = set(pairs)
     out: list[tuple[int, int]] = []
     for j in sorted({j for j, _ in pairs}):
-        later = [i for i in tracked if i > j]
-        angles = []
-        for i in later:
-            R = poses[j, :3, :3].T @ poses[i, :3, :3]
-            angle = math.degrees(math.acos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
-            if angle > 1.25 * max(angles_deg):
-                break
-            angles.append((angle, i))
+        later = tracked[tracked > j]
+        deg = np.degrees(rotation_angle_np(poses[j, :3, :3].T @ poses[later, :3, :3]))
+        past = np.flatnonzero(deg > reach)
+        if past.size:
+            later, deg = later[:past[0]], deg[:past[0]]
         for target in angles_deg:
-            near = [(abs(a - target), i) for a, i in angles if abs(a - target) <= 0.25 * target]
-            if near:
-                pair = (j, min(near)[1])
+            off = np.abs(deg - target)
+            if off.size and off.min() <= 0.25 * target:
+                pair = (j, int(later[np.argmin(off)]))
                 if pair not in have:
                     have.add(pair)
                     out.append(pair)
