@@ -24,6 +24,7 @@ from edgevo_jax.cli import BUNDLED_CLIP
 from edgevo_jax.datasets import load_sequence, read_calibration
 from edgevo_jax.datasets.bag import load_bag
 from edgevo_jax.datasets.realsense import open_realsense
+from edgevo_jax.datasets.source import depth_lags
 from edgevo_jax.datasets.tum import read_file_list
 from edgevo_jax.depth_registration import register_depth
 
@@ -178,6 +179,10 @@ def test_the_tum_reader_applies_the_depth_fields():
     k = np.searchsorted(depth_t + 0.01, shifted.depth_timestamps)
     assert np.array_equal(shifted.depth_timestamps, (depth_t + 0.01)[k])  # true times
     assert np.all(np.abs(shifted.depth_timestamps - shifted.timestamps) <= 0.02)
+    # the tracker's depth lags: the true times' differences, only for a stated offset
+    np.testing.assert_array_equal(depth_lags(shifted),
+                                  shifted.depth_timestamps - np.asarray(shifted.timestamps))
+    assert depth_lags(same) is None
     # 30 ms earlier: rgb 102.175304 pairs with the depth image of 102.194330 (true time
     # 102.164330), not with 102.160407's (true time 102.130407)
     later = load_sequence(BUNDLED_CLIP, camera=FR1._replace(depth_time_offset_s=-0.03))

@@ -21,6 +21,7 @@ from .base import (
     SourceError,
     UnknownCameraError,
     camera_readout,
+    depth_lags,
 )
 
 __all__ = [
@@ -32,6 +33,7 @@ __all__ = [
     "SourceError",
     "UnknownCameraError",
     "camera_readout",
+    "depth_lags",
     "is_bag",
     "open_source",
 ]

@@ -94,6 +94,25 @@ def _row(intr: Intrinsics, pts: jnp.ndarray) -> jnp.ndarray:
     return intr.fy * pts[1] / jnp.where(pts[2] > 1e-6, pts[2], 1.0) + intr.cy
 
 
+def depths_at_colour_time(edges, velocity: np.ndarray, lag_s: float, intr: Intrinsics):
+    """A keyframe's edges (``selection.KeyframeEdges`` of numpy arrays) whose depths come from
+    a depth image taken ``lag_s`` seconds after the colour image (its middle row), moved to
+    the colour image's time by the camera's ``velocity`` (6,) [v, w] per second (body
+    twist): an edge keeps its pixel (a smooth surface: the depth camera's pixel for it is
+    near) and takes the depth of P + lag_s (w x P + v), P its point as read (first order;
+    ``learn.camera``'s model of the depth time offset). Returns the edges with new rho
+    (valid slots whose depth stays positive; the rest as they were)."""
+    uv = np.asarray(edges.uv, np.float64)
+    rho = np.asarray(edges.rho, np.float64)
+    valid = np.asarray(edges.valid)
+    z = 1.0 / np.where(valid, rho, 1.0)
+    P = np.stack([(uv[0] - intr.cx) / intr.fx * z, (uv[1] - intr.cy) / intr.fy * z, z])
+    v, w = np.asarray(velocity[:3], np.float64), np.asarray(velocity[3:], np.float64)
+    z_new = (P + lag_s * (np.cross(w[:, None], P, axis=0) + v[:, None]))[2]
+    ok = valid & (z_new > 1e-6)
+    return edges._replace(rho=np.where(ok, 1.0 / np.where(ok, z_new, 1.0), rho).astype(np.float32))
+
+
 def unroll_edges(edges, twist: np.ndarray, intr: Intrinsics, height: int):
     """A keyframe's edges (``selection.KeyframeEdges`` of numpy arrays) as the camera at the
     time of its middle row sees them: an edge d rows below it was seen by the camera moved

@@ -46,7 +46,9 @@ class Frame:
     which the device finds the nearest edge's gradient; depth: the (H, W) depth image in
     metres it was made from (a reference, not a copy; the local map reads it at keyframes);
     gray: the (H, W) uint8 image the edges were found in (a reference; recovery's feature
-    hypotheses read it), None when the frame was made from edges alone.
+    hypotheses read it), None when the frame was made from edges alone; depth_lag_s: how
+    long after the colour image the depth image was taken (s; a keyframe made from the
+    frame moves its edges' depths to the colour image's time, ``shutter.depths_at_colour_time``).
     """
 
     edge_uv: np.ndarray
@@ -57,6 +59,7 @@ class Frame:
     edge_map: EdgeMap
     depth: np.ndarray | None = None
     gray: np.ndarray | None = None
+    depth_lag_s: float = 0.0
 
     @property
     def num_edges(self) -> int:

@@ -50,7 +50,7 @@ from tqdm import tqdm
 
 from ..camera import Intrinsics
 from ..config import Config
-from ..datasets.source import Source, camera_readout
+from ..datasets.source import Source, camera_readout, depth_lags
 from ..derive import SolveStructure, solve_structure
 from ..determinism import full_precision
 from ..frontend.chunk import track_chunk
@@ -112,12 +112,16 @@ class _Frames:
 
     def __init__(self, seq: Source, config: Config, n: int) -> None:
         self.seq, self.config, self.n = seq, config, n
+        self.lags = depth_lags(seq)  # each depth image's time after its colour image's
         self._futures: dict[int, Future] = {}
         self._low = 0  # frames before this one are dropped
         self._lock = threading.Lock()  # runs are concluded on two threads (_concluders)
 
     def _make(self, i: int) -> Frame:
-        return preprocess(*self.seq.rectify_frame(*self.seq.decode_frame(i)), self.config)
+        frame = preprocess(*self.seq.rectify_frame(*self.seq.decode_frame(i)), self.config)
+        if self.lags is None:
+            return frame
+        return dataclasses.replace(frame, depth_lag_s=float(self.lags[i]))
 
     def prefetch(self, upto: int) -> None:
         """Start making the frames up to index ``upto`` (exclusive) not yet asked for."""

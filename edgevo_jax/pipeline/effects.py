@@ -25,7 +25,7 @@ from ..frontend.align import track
 from ..frontend.chunk import track_next_jit
 from ..frontend.depth import depth_points
 from ..frontend.selection import KeyframeEdges, keyframe_edges
-from ..frontend.shutter import Shutter, shutter_rate, unroll_edges
+from ..frontend.shutter import Shutter, depths_at_colour_time, shutter_rate, unroll_edges
 from ..geometry import inverse_np, log_np
 from ..hostmem import aligned_array, to_host
 from ..image.preprocess import Frame
@@ -50,7 +50,7 @@ class Made(NamedTuple):
 
 class Solver:
     """The solves of one tracker: ``config``, ``intrinsics`` (replaced when the window refines
-    them), ``readout_s`` (0: a global shutter) and learnt ``params`` (None: the config's
+    them), ``readout_s`` (0: a global shutter), learnt ``params`` (None: the config's
     numbers). The solve's numbers go in as (traced) arrays and its static part as a jit
     static argument: configurations that differ in numbers only share one program."""
 
@@ -156,14 +156,22 @@ def confirm(solver: Solver, state: TrackerState, frame: Frame, ask: Confirm,
 def make_keyframe(solver: Solver, mapper: Mapper | None, frame: Frame, ask: MakeKeyframe,
                   index: int) -> Made | None:
     """Make ``frame`` the keyframe ``ask`` describes: select its edges (seeded by the keyframe's
-    number; prior motion: constant velocity, T_next_kf = T_w_kf^-1 T_w_prev), unroll them
-    for a rolling shutter (its own velocity to its middle row), hand it to ``mapper`` at frame
-    ``index`` and add the depth residual's points. None when it has too few usable edges."""
+    number; prior motion: constant velocity, T_next_kf = T_w_kf^-1 T_w_prev), move their
+    depths to the colour image's time where the depth image was taken apart from it
+    (``frame.depth_lag_s``; the velocity from the previous frame), unroll them for a
+    rolling shutter (its own velocity to its middle row), hand it to ``mapper`` at frame
+    ``index`` and add the depth residual's points (not moved: that residual pairs two depth
+    images, each taken apart from its colour image alike). None when it has too few usable
+    edges."""
     config, motion, pose = solver.config, ask.motion, ask.pose
     t0 = time.perf_counter()
     T_prior = inverse_np(pose) @ motion.poses[-1] if motion.poses else np.eye(4)
     edges = keyframe_edges(frame, config, seed=config.seed + ask.id, T_prior=T_prior,
                            intr=solver.intrinsics, reobs_a=solver.reobs_a)
+    if frame.depth_lag_s != 0.0 and motion.poses:
+        dt = max(ask.timestamp - motion.times[-1], 1e-3)
+        velocity = log_np(inverse_np(motion.poses[-1]) @ pose) / dt
+        edges = depths_at_colour_time(edges, velocity, frame.depth_lag_s, solver.intrinsics)
     twist = None  # its motion per row, with a rolling shutter
     if solver.readout_s > 0:
         twist = np.zeros(6)

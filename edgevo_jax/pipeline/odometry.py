@@ -108,17 +108,23 @@ class Odometry:
 
     # -- public -------------------------------------------------------------------------
     def track(self, rgb: np.ndarray, depth: np.ndarray, timestamp: float, *,
-              prior: np.ndarray | None = None) -> FrameResult:
+              prior: np.ndarray | None = None, depth_lag_s: float = 0.0) -> FrameResult:
         """Track one frame: rgb (H, W, 3) (or gray (H, W)) uint8, depth (H, W) float in
         metres (0 or NaN = missing), timestamp in seconds, increasing; ``prior``: the
-        frame's motion T_prev_cur (class doc; None: constant velocity). ValueError naming
-        the problem for arrays of the wrong kind or size and a prior that is no rigid
-        transform (before any JAX code runs)."""
+        frame's motion T_prev_cur (class doc; None: constant velocity); ``depth_lag_s``: how
+        long after the colour image the depth image was taken (s; a calibrated camera's
+        ``depth_time_offset_s`` where the two stamps agree; ``Frame.depth_lag_s``).
+        ValueError naming the problem for arrays of the wrong kind or size, a prior that is
+        no rigid transform and a lag that is not finite (before any JAX code runs)."""
         if prior is not None:  # refused before the frame is looked at (``submit`` takes it)
             rigid_transform(prior, name="prior")
+        if not np.isfinite(depth_lag_s):
+            raise ValueError(f"depth_lag_s must be finite, got {depth_lag_s}")
         self._shape = check_frame(rgb, depth, timestamp, self._shape)
         t0 = time.perf_counter()
         frame = preprocess(rgb, depth, self.config)
+        if depth_lag_s:
+            frame = dataclasses.replace(frame, depth_lag_s=float(depth_lag_s))
         pre_ms = (time.perf_counter() - t0) * 1e3
         return self.complete(self.submit(frame, timestamp, preprocess_ms=pre_ms, prior=prior))
 

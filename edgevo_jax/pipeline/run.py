@@ -28,7 +28,7 @@ from tqdm import tqdm
 
 from ..config import Config
 from ..datasets.groundtruth import groundtruth_pose_at
-from ..datasets.source import Source, camera_readout
+from ..datasets.source import Source, camera_readout, depth_lags
 from ..derive import structural_fields
 from ..frontend.align import TrackResult
 from ..frontend.chunk import track_chunk_jit
@@ -150,6 +150,7 @@ def run_sequence(
         bar.set_postfix(kf=odo.num_keyframes, refresh=False)
     ready = None  # (frame, timestamp, preprocess ms, rgb) decoded and pre-processed, not submitted
     shown = None  # the rgb and Frame of the frame in flight (for on_frame)
+    lags = depth_lags(seq)  # each depth image's time after its colour image's (None: 0)
     t_prev = time.perf_counter()
     try:
         for i in range(n + 1):
@@ -170,7 +171,10 @@ def run_sequence(
             result = odo.complete(pending) if pending is not None else None  # meanwhile: DT
             if job is not None:
                 t2 = time.perf_counter()
-                ready = (job.finish(), float(seq.timestamps[i]),
+                frame = job.finish()
+                if lags is not None:
+                    frame = dataclasses.replace(frame, depth_lag_s=float(lags[i]))
+                ready = (frame, float(seq.timestamps[i]),
                          (pre_s + time.perf_counter() - t2) * 1e3, rgb)
             if result is not None:
                 _record(run, result, writer)

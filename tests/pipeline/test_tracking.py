@@ -12,8 +12,10 @@ import numpy as np
 import pytest
 
 from edgevo_jax import Config, Odometry
+from edgevo_jax.camera import CAMERAS
 from edgevo_jax.cli import BUNDLED_CLIP, main
 from edgevo_jax.datasets import load_sequence
+from edgevo_jax.datasets.source import depth_lags
 from edgevo_jax.frontend.align import track
 from edgevo_jax.frontend.chunk import batch_of_one, track_next
 from edgevo_jax.frontend.selection import keyframe_edges
@@ -77,6 +79,34 @@ def test_tracker_compiles_once_and_tracks_the_bundled_clip(bundled, monkeypatch)
     assert stats["frames"] == len(bundled) and stats["lost"] == 0
     assert stats["ate_rmse_m"] < 0.006
     assert np.all(np.isfinite(run.poses))
+
+
+def test_a_depth_time_offset_moves_the_keyframes_edge_depths(monkeypatch):
+    """A camera stating a depth time offset: each frame carries its depth image's true time
+    after its colour image's (``datasets.depth_lags``; +-15 ms on this clip), and a keyframe
+    made after the first takes its edge depths at the colour time; without the lags the
+    first keyframe (no velocity yet) is the same and the second is not."""
+    seq = load_sequence(BUNDLED_CLIP, camera=CAMERAS["fr1"].camera._replace(
+        depth_time_offset_s=-0.002))
+
+    def keyframes() -> tuple[dict[int, np.ndarray], list[float]]:
+        rho, lags = {}, []
+
+        def record(result, rgb, frame, odo):
+            lags.append(frame.depth_lag_s)
+            rho.setdefault(odo.state.keyframe.id, np.asarray(odo.state.keyframe.edges.rho))
+
+        run_sequence(seq, Config(), progress=False, on_frame=record)
+        return rho, lags
+
+    rho, lags = keyframes()
+    np.testing.assert_array_equal(lags, depth_lags(seq))
+    assert np.abs(np.asarray(lags)).min() > 0.01
+    monkeypatch.setattr("edgevo_jax.pipeline.run.depth_lags", lambda seq: None)
+    plain, plain_lags = keyframes()
+    assert not any(plain_lags) and set(rho) == set(plain) and len(rho) >= 2
+    np.testing.assert_array_equal(rho[0], plain[0])
+    assert np.abs(rho[1] - plain[1]).max() > 1e-3
 
 
 def test_first_pose_comes_from_the_ground_truth(bundled):
