@@ -57,6 +57,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--offsets", type=int_list, default=None, help="default: 0 to step-1")
     p.add_argument("--seeds", type=int_list, default=[0, 1, 2])
     p.add_argument("--out-json", type=Path, default=Path("far_apart_anatomy.json"))
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a Config field for every run, as edgevo run --set takes it")
     args = p.parse_args(argv)
     enable_batch_exact()
     full = load_sequence(args.clip)
@@ -69,7 +71,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         still = accuracy(seq.groundtruth, seq.timestamps,
                          np.repeat(np.eye(4)[None], len(seq), axis=0))["ate_rmse_m"]
         for seed in args.seeds:
-            run = run_sequence(seq, Config(seed=seed), progress=False)
+            config = Config().with_overrides([*args.set, f"seed={seed}"])
+            run = run_sequence(seq, config, progress=False)
             states = [r.state for r in run.results]
             ate = accuracy(seq.groundtruth, run.timestamps, run.poses)["ate_rmse_m"]
             wrong = diverged_frames(run.poses, states, gt)
