@@ -89,7 +89,7 @@ def depth_lags(seq: Source) -> np.ndarray | None:
     offset (``depth_time_offset_s``: a calibrated camera, whose depth stamps are then true
     times); None otherwise, and the tracker reads depth as taken with the colour image (the
     files' stamps alone are not taken for capture times: the shared fast clip's agree
-    within 0.1 ms, its calibration puts the depth 13.8 ms before the colour)."""
+    within 0.1 ms, its calibration puts the depth 15.6 ms before the colour)."""
     depth_t = getattr(seq, "depth_timestamps", None)
     if not getattr(seq, "depth_time_offset_s", 0.0) or depth_t is None:
         return None

@@ -94,6 +94,18 @@ def _row(intr: Intrinsics, pts: jnp.ndarray) -> jnp.ndarray:
     return intr.fy * pts[1] / jnp.where(pts[2] > 1e-6, pts[2], 1.0) + intr.cy
 
 
+def _edge_points(edges, intr: Intrinsics):
+    """A keyframe's edges (``selection.KeyframeEdges`` of numpy arrays) as float64 pixels
+    (2, K), inverse depths (K,), validity (K,) and points (3, K) in its camera (invalid
+    slots at depth 1)."""
+    uv = np.asarray(edges.uv, np.float64)
+    rho = np.asarray(edges.rho, np.float64)
+    valid = np.asarray(edges.valid)
+    z = 1.0 / np.where(valid, rho, 1.0)
+    P = np.stack([(uv[0] - intr.cx) / intr.fx * z, (uv[1] - intr.cy) / intr.fy * z, z])
+    return uv, rho, valid, P
+
+
 def depths_at_colour_time(edges, velocity: np.ndarray, lag_s: float, intr: Intrinsics):
     """A keyframe's edges (``selection.KeyframeEdges`` of numpy arrays) whose depths come from
     a depth image taken ``lag_s`` seconds after the colour image (its middle row), moved to
@@ -102,11 +114,7 @@ def depths_at_colour_time(edges, velocity: np.ndarray, lag_s: float, intr: Intri
     near) and takes the depth of P + lag_s (w x P + v), P its point as read (first order;
     ``learn.camera``'s model of the depth time offset). Returns the edges with new rho
     (valid slots whose depth stays positive; the rest as they were)."""
-    uv = np.asarray(edges.uv, np.float64)
-    rho = np.asarray(edges.rho, np.float64)
-    valid = np.asarray(edges.valid)
-    z = 1.0 / np.where(valid, rho, 1.0)
-    P = np.stack([(uv[0] - intr.cx) / intr.fx * z, (uv[1] - intr.cy) / intr.fy * z, z])
+    _, rho, valid, P = _edge_points(edges, intr)
     v, w = np.asarray(velocity[:3], np.float64), np.asarray(velocity[3:], np.float64)
     z_new = (P + lag_s * (np.cross(w[:, None], P, axis=0) + v[:, None]))[2]
     ok = valid & (z_new > 1e-6)
@@ -119,11 +127,7 @@ def unroll_edges(edges, twist: np.ndarray, intr: Intrinsics, height: int):
     by exp(d twist) (``twist`` (6,) [v, w] per level-0 row), so its point is
     P = exp(d twist) P_d ~ P_d + d (w x P_d + v). Returns the edges with new uv and rho
     (valid slots whose point stays in front of the camera; the rest as they were)."""
-    uv = np.asarray(edges.uv, np.float64)
-    rho = np.asarray(edges.rho, np.float64)
-    valid = np.asarray(edges.valid)
-    z = 1.0 / np.where(valid, rho, 1.0)
-    P = np.stack([(uv[0] - intr.cx) / intr.fx * z, (uv[1] - intr.cy) / intr.fy * z, z])
+    uv, rho, valid, P = _edge_points(edges, intr)
     d = uv[1] - 0.5 * (height - 1)
     v, w = np.asarray(twist[:3], np.float64), np.asarray(twist[3:], np.float64)
     P = P + d * (np.cross(w[:, None], P, axis=0) + v[:, None])
