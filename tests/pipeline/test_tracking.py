@@ -162,6 +162,9 @@ def test_streaming_api_rejects_time_going_back(bundled):
     np.testing.assert_array_equal(first.pose, np.eye(4))
     with pytest.raises(ValueError, match="does not increase"):
         odo.track(rgb, depth, 10.0)
+    with pytest.raises(ValueError, match="depth_lag_s must be finite"):
+        odo.track(rgb, depth, 11.0, depth_lag_s=float("nan"))
+    assert odo.track(rgb, depth, 11.0, depth_lag_s=-0.015).state in ("OK", "WEAK")
 
 
 def test_cli_run_writes_trajectory_and_stats(tmp_path, capsys):
