@@ -87,9 +87,9 @@ def depth_lags(seq: Source) -> np.ndarray | None:
     """How long after its colour image each depth image of a source was taken (s, (N,)):
     ``depth_timestamps`` minus ``timestamps``, where the source's camera states a depth time
     offset (``depth_time_offset_s``: a calibrated camera, whose depth stamps are then true
-    times); None otherwise, and the tracker reads depth as taken with the colour image (the
-    files' stamps alone are not taken for capture times: the shared fast clip's agree
-    within 0.1 ms, its calibration puts the depth 15.6 ms before the colour)."""
+    times); None otherwise, and the tracker reads depth as taken with the colour image: the
+    files' stamps alone are not taken for capture times (docs/decisions.md, "The tracker
+    models the depth time")."""
     depth_t = getattr(seq, "depth_timestamps", None)
     if not getattr(seq, "depth_time_offset_s", 0.0) or depth_t is None:
         return None

@@ -168,16 +168,17 @@ def make_keyframe(solver: Solver, mapper: Mapper | None, frame: Frame, ask: Make
     T_prior = inverse_np(pose) @ motion.poses[-1] if motion.poses else np.eye(4)
     edges = keyframe_edges(frame, config, seed=config.seed + ask.id, T_prior=T_prior,
                            intr=solver.intrinsics, reobs_a=solver.reobs_a)
-    if frame.depth_lag_s != 0.0 and motion.poses:
-        dt = max(ask.timestamp - motion.times[-1], 1e-3)
-        velocity = log_np(inverse_np(motion.poses[-1]) @ pose) / dt
-        edges = depths_at_colour_time(edges, velocity, frame.depth_lag_s, solver.intrinsics)
+    # its motion since the previous frame (a twist) and the time it took
+    step = log_np(inverse_np(motion.poses[-1]) @ pose) if motion.poses else None
+    dt = ask.timestamp - motion.times[-1] if motion.poses else 0.0
+    if frame.depth_lag_s != 0.0 and step is not None:
+        edges = depths_at_colour_time(edges, step / max(dt, 1e-3), frame.depth_lag_s,
+                                      solver.intrinsics)
     twist = None  # its motion per row, with a rolling shutter
     if solver.readout_s > 0:
         twist = np.zeros(6)
-        if motion.poses:
-            rate = shutter_rate(solver.readout_s, frame.shape[0], ask.timestamp - motion.times[-1])
-            twist = rate * log_np(inverse_np(motion.poses[-1]) @ pose)
+        if step is not None:
+            twist = shutter_rate(solver.readout_s, frame.shape[0], dt) * step
             edges = unroll_edges(edges, twist, solver.intrinsics, frame.shape[0])
     n = int(edges.valid.sum())
     if n < config.min_inliers:
