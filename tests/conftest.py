@@ -13,7 +13,7 @@ from types import ModuleType
 import pytest
 
 from edgevo_jax import enable_batch_exact
-from edgevo_jax.programs import release_compiled
+from edgevo_jax.programs import CACHE_ENV, release_compiled
 
 # batch-size-exact arithmetic before any JAX computation (the CLI does the same): a run then
 # equals its batched self bit for bit (tests/test_batch.py, notebooks/05)
@@ -30,19 +30,24 @@ def _room_for_programs():
 
 
 @pytest.fixture(autouse=True, scope="session")
-def _no_persistent_cache():
-    """The on-disk caches (compiled and exported programs, ``EDGEVO_CACHE_DIR``) off: every
-    tracker and the CLI switch them on (``programs.enable_cache``), which would turn XLA's
-    persistent cache on for the rest of the session and write the user's
-    ~/.cache/edgevo_jax (the kept programs are tested with folders of their own:
-    ``kept_programs``; the cache's defaults in new processes, tests/test_programs.py)."""
-    before = os.environ.get("EDGEVO_CACHE_DIR")
-    os.environ["EDGEVO_CACHE_DIR"] = ""
+def _session_program_cache(tmp_path_factory):
+    """The on-disk caches (compiled and exported programs, ``EDGEVO_CACHE_DIR``) in one
+    temporary folder for the session: every tracker and the CLI switch them on
+    (``programs.enable_cache``), which would otherwise write the user's ~/.cache/edgevo_jax.
+    The session's tests, its CLI subprocesses and its notebooks' kernels then load the
+    programs one of them compiled instead of compiling them again (``release_compiled``
+    before each test drops only what is in memory). A test of the cache itself gives it a
+    folder of its own (``kept_programs``; the defaults in new processes,
+    tests/test_programs.py)."""
+    before = os.environ.get(CACHE_ENV)
+    os.environ[CACHE_ENV] = str(tmp_path_factory.mktemp("programs"))
     yield
     if before is None:
-        os.environ.pop("EDGEVO_CACHE_DIR", None)
+        os.environ.pop(CACHE_ENV, None)
     else:
-        os.environ["EDGEVO_CACHE_DIR"] = before
+        os.environ[CACHE_ENV] = before
+
+
 SHARED_TUM = Path(__file__).resolve().parents[2] / "shared" / "data" / "tum"
 
 
@@ -69,15 +74,16 @@ def shared_clip() -> Callable[[str], Path]:
 @pytest.fixture
 def kept_programs(tmp_path: Path, monkeypatch):
     """Programs exported to and loaded from ``tmp_path`` (``edgevo_jax.programs``) for the
-    test, then no longer kept. Through the cache's own variable, as a user sets it: every
-    tracker switches the cache on (``programs.enable_cache``) and would otherwise put the
-    session's setting (no cache) back."""
+    test, then the session's folder again. Through the cache's own variable, as a user sets
+    it: every tracker switches the cache on (``programs.enable_cache``) and would otherwise
+    put the session's folder back."""
     from edgevo_jax import programs
 
-    monkeypatch.setenv(programs.CACHE_ENV, str(tmp_path))
+    session = os.environ.get(CACHE_ENV, "")
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path))
     programs.enable_cache()
     yield tmp_path
-    monkeypatch.setenv(programs.CACHE_ENV, "")
+    monkeypatch.setenv(CACHE_ENV, session)
     programs.enable_cache()
 
 

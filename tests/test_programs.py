@@ -171,8 +171,8 @@ def test_a_compilation_cache_the_user_set_stands(tmp_path):
 def test_enable_cache_follows_edgevo_cache_dir_in_a_process(tmp_path, monkeypatch):
     """Called again with another EDGEVO_CACHE_DIR, the cache moves (or goes off) with it;
     JAX's folder was not the user's, so it follows."""
-    assert jax.config.jax_compilation_cache_dir is None  # tests run without a cache
-    min_time = jax.config.jax_persistent_cache_min_compile_time_secs
+    # the session's folder (tests/conftest.py), set by edgevo: not the user's
+    assert jax.config.jax_compilation_cache_dir == programs._state["jax_dir"]
     try:
         monkeypatch.setenv("EDGEVO_CACHE_DIR", str(tmp_path / "a"))
         assert programs.enable_cache() == tmp_path / "a"
@@ -184,11 +184,9 @@ def test_enable_cache_follows_edgevo_cache_dir_in_a_process(tmp_path, monkeypatc
         assert programs.enable_cache() is None
         assert jax.config.jax_compilation_cache_dir is None
         assert programs._state["folder"] is None
-    finally:
-        programs.keep_programs(None)
-        programs._state["jax_dir"] = None
-        jax.config.update("jax_compilation_cache_dir", None)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", min_time)
+    finally:  # the session's folder again
+        monkeypatch.undo()
+        programs.enable_cache()
 
 
 def test_cache_folder_default_and_xdg(tmp_path, monkeypatch):
