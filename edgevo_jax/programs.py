@@ -26,6 +26,7 @@ pickled pytree structure: the folder is trusted like the compilation cache besid
 """
 from __future__ import annotations
 
+import functools
 import gc
 import hashlib
 import logging
@@ -121,11 +122,19 @@ def _source_digest() -> str:
 def _spec(x: Any) -> tuple:
     """(shape, dtype, weak type) of one input leaf, as jit sees it (float64 is float32
     unless x64 is on)."""
-    if isinstance(x, np.ndarray | jax.Array):
-        return (x.shape, str(jax.dtypes.canonicalize_dtype(x.dtype)),
-                bool(getattr(x, "weak_type", False)))
+    if isinstance(x, np.ndarray):
+        return x.shape, _dtype_name(x.dtype, jax.config.jax_enable_x64), False
+    if isinstance(x, jax.Array):
+        return x.shape, _dtype_name(x.dtype, jax.config.jax_enable_x64), bool(x.weak_type)
     a = jax.typeof(x)
     return a.shape, str(a.dtype), a.weak_type
+
+
+@functools.cache
+def _dtype_name(dtype: np.dtype, x64: bool) -> str:
+    """The name of ``dtype`` as jit canonicalises it with x64 on or off (memoised: every
+    call of a kept program names the dtypes of all its inputs)."""
+    return str(jax.dtypes.canonicalize_dtype(dtype))
 
 
 def _jit_call(exported: jax.export.Exported, name: str) -> Callable:

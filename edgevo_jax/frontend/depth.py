@@ -34,13 +34,19 @@ def depth_points(depth: np.ndarray, intr: Intrinsics, count: int, *, min_depth: 
     ``MAX_RELATIVE_STEP`` of it, normals from the cross product of the central differences,
     ``count`` of them drawn with ``seed``. Padding slots (fewer candidates) have zero normals
     (``depth_valid``)."""
-    d = np.asarray(depth, np.float64)
-    d = np.where(np.isfinite(d) & (d >= min_depth) & (d <= max_depth), d, 0.0)
-    h, w = d.shape
+    depth = np.asarray(depth)
+    h, w = depth.shape
     fx, fy, cx, cy = (float(v) for v in intr)
-    v, u = np.mgrid[GRID_STEP:h - 1:GRID_STEP, GRID_STEP:w - 1:GRID_STEP]
+    # the grid's pixels and their four neighbours, as strided views (no copy of the image)
+    g = GRID_STEP
+    v, u = np.mgrid[g:h - 1:g, g:w - 1:g]
     u, v = u.ravel(), v.ravel()
-    z, zl, zr, zu, zd = d[v, u], d[v, u - 1], d[v, u + 1], d[v - 1, u], d[v + 1, u]
+
+    def at(dv: int, du: int) -> np.ndarray:
+        z = depth[g + dv:h - 1 + dv:g, g + du:w - 1 + du:g].astype(np.float64).ravel()
+        return np.where(np.isfinite(z) & (z >= min_depth) & (z <= max_depth), z, 0.0)
+
+    z, zl, zr, zu, zd = at(0, 0), at(0, -1), at(0, 1), at(-1, 0), at(1, 0)
     ok = (z > 0) & (zl > 0) & (zr > 0) & (zu > 0) & (zd > 0)
     ok &= np.maximum.reduce([abs(zl - z), abs(zr - z), abs(zu - z), abs(zd - z)]) \
         <= MAX_RELATIVE_STEP * np.maximum(z, 1e-9)
@@ -48,21 +54,24 @@ def depth_points(depth: np.ndarray, intr: Intrinsics, count: int, *, min_depth: 
     def back(uu, vv, zz):
         return np.stack([(uu - cx) / fx * zz, (vv - cy) / fy * zz, zz])
 
+    # normals of the candidates only, points of the chosen only (column by column as one)
+    idx = np.flatnonzero(ok)
+    u, v, z, zl, zr, zu, zd = (a[idx] for a in (u, v, z, zl, zr, zu, zd))
     du = back(u + 1, v, zr) - back(u - 1, v, zl)
     dv = back(u, v + 1, zd) - back(u, v - 1, zu)
     n = np.cross(du, dv, axis=0)
     norm = np.linalg.norm(n, axis=0)
-    ok &= norm > 0
-    n = n / np.maximum(norm, 1e-12)
-    p = back(u, v, z)
+    keep = np.flatnonzero(norm > 0)
+    if keep.size > count:
+        keep = np.sort(np.random.default_rng(seed).choice(idx[keep], count, replace=False))
+        keep = np.searchsorted(idx, keep)
+    n = n[:, keep] / np.maximum(norm[keep], 1e-12)
     n = np.where(n[2] > 0, -n, n)  # facing the camera
-    idx = np.flatnonzero(ok)
-    if idx.size > count:
-        idx = np.sort(np.random.default_rng(seed).choice(idx, count, replace=False))
+    p = back(u[keep], v[keep], z[keep])
     pts = np.zeros((3, count), np.float32)
     normals = np.zeros((3, count), np.float32)
     pts[2] = 1.0
-    pts[:, :idx.size], normals[:, :idx.size] = p[:, idx], n[:, idx]
+    pts[:, :keep.size], normals[:, :keep.size] = p, n
     return pts, normals
 
 
