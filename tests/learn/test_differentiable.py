@@ -1,6 +1,6 @@
 """Gradients of the pose w.r.t. the learnable Params on real frames (bundled fr1/xyz clip):
-both adjoints against central finite differences in float64, implicit vs unrolled at a
-converged pose, finiteness with empty masks, the defaults reproducing ``solve.track``, and
+both adjoints against central finite differences in float64 (the implicit one at a
+converged pose), finiteness with empty masks, the defaults reproducing ``solve.track``, and
 the relative-pose losses."""
 
 from __future__ import annotations
@@ -171,21 +171,22 @@ def test_implicit_gradients_are_exact_at_a_converged_pose(clip):
     point of its own hard decisions (Newton decrement ~1e-25; the plain bilinear LM stops at
     ~0.2); there the implicit gradient equals central differences to 1e-4 relative for every
     parameter that enters level 0, with the decisions (gate, visibility, nearest edges) the
-    same at every FD pose; the others have zero gradient and FD (to rounding); implicit =
-    unrolled."""
+    same at every FD pose; the others have zero gradient and FD (to rounding). (The unrolled
+    adjoint is checked against differences in the test before; through three refinement
+    rounds of bicubic levels its program took 80 of this test's 146 s to build.)"""
     seq, config = clip[0], CONVERGED
     with jax.enable_x64(True):
         params = trained_like(config)
         kf, dist, ng, mag, T_gt = problem(clip, 2, jnp.float64)
 
-        def pose(v, adjoint):
+        def pose(v):
             return track_differentiable(kf, dist, ng, jnp.eye(4), seq.intrinsics,
-                                        unflatten(v, params), config, mag=mag, adjoint=adjoint,
+                                        unflatten(v, params), config, mag=mag, adjoint="implicit",
                                         interpolation="bicubic", refine=3).T_c_k
 
         @jax.jit
         def forward(v):
-            T = pose(v, "implicit")  # (the forward pass is the same for both adjoints)
+            T = pose(v)
             system, mask, dots = level_system(kf, dist, ng, T, seq.intrinsics,
                                               unflatten(v, params), config, mag=mag,
                                               interpolation="bicubic")
@@ -194,10 +195,7 @@ def test_implicit_gradients_are_exact_at_a_converged_pose(clip):
         v = flatten(params)
         _, mask, dots, decrement, cost = forward(v)
         assert float(decrement) < 1e-20 * float(cost), (decrement, cost)
-        g_implicit = np.asarray(jax.jit(jax.grad(lambda v: pose_loss(pose(v, "implicit"),
-                                                                     T_gt)))(v))
-        g_unrolled = np.asarray(jax.jit(jax.grad(lambda v: pose_loss(pose(v, "unrolled"),
-                                                                     T_gt)))(v))
+        g_implicit = np.asarray(jax.jit(jax.grad(lambda v: pose_loss(pose(v), T_gt)))(v))
         eps = 1e-4
         scale = np.max(np.abs(g_implicit))
         for i, name in enumerate(NAMES):
@@ -213,7 +211,6 @@ def test_implicit_gradients_are_exact_at_a_converged_pose(clip):
                 assert g == 0.0 and abs(fd) < 1e-12, (name, g, fd)
             else:
                 assert abs(g - fd) <= 1e-4 * abs(fd) + 1e-7 * scale and fd != 0.0, (name, g, fd)
-        np.testing.assert_allclose(g_unrolled, g_implicit, rtol=1e-6, atol=1e-10 * scale)
 
 
 @pytest.mark.parametrize("case", ["real", "no_valid_edges", "out_of_view"])
