@@ -22,6 +22,12 @@ enable_batch_exact()
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 
 
+def pytest_xdist_auto_num_workers(config) -> int:
+    """``-n auto`` (pyproject's addopts): a worker per core, at most 4: almost all of the
+    suite's time is compilation, one core each, and each worker holds its own programs."""
+    return max(1, min(4, os.cpu_count() or 1))
+
+
 @pytest.fixture(autouse=True)
 def _room_for_programs():
     """Each test starts with room for its compiled programs (``programs.release_compiled``:
@@ -36,8 +42,9 @@ def _session_program_cache(tmp_path_factory):
     (``programs.enable_cache``), which would otherwise write the user's ~/.cache/edgevo_jax.
     The session's tests, its CLI subprocesses and its notebooks' kernels then load the
     programs one of them compiled instead of compiling them again (``release_compiled``
-    before each test drops only what is in memory). A test of the cache itself gives it a
-    folder of its own (``kept_programs``; the defaults in new processes,
+    before each test drops only what is in memory). Each xdist worker has a folder of its
+    own (its own temporary root): no two processes write one cache. A test of the cache
+    itself gives it a folder of its own (``kept_programs``; the defaults in new processes,
     tests/test_programs.py)."""
     before = os.environ.get(CACHE_ENV)
     os.environ[CACHE_ENV] = str(tmp_path_factory.mktemp("programs"))
