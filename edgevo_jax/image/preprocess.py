@@ -10,10 +10,11 @@ distance transform would give it for every pixel, at three times the cost of the
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cache
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import cv2
 import jax.numpy as jnp
@@ -76,6 +77,12 @@ class Frame:
 def _worker() -> ThreadPoolExecutor:
     """One background thread for the distance transform (created on first use)."""
     return ThreadPoolExecutor(max_workers=1, thread_name_prefix="edgevo-dt")
+
+
+def beside(fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future:
+    """``fn(*args, **kwargs)`` on the preprocessing's worker thread, which is idle between a
+    frame's preprocessing and the next's: host work the caller's thread overlaps."""
+    return _worker().submit(fn, *args, **kwargs)
 
 
 def to_gray(rgb: np.ndarray) -> np.ndarray:

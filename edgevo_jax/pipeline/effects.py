@@ -28,7 +28,7 @@ from ..frontend.selection import KeyframeEdges, keyframe_edges
 from ..frontend.shutter import Shutter, depths_at_colour_time, shutter_rate, unroll_edges
 from ..geometry import inverse_np, log_np
 from ..hostmem import aligned_array, to_host
-from ..image.preprocess import Frame
+from ..image.preprocess import Frame, beside
 from ..learn.params import Params, solve_knobs_of
 from ..programs import program
 from . import recovery
@@ -165,6 +165,11 @@ def make_keyframe(solver: Solver, mapper: Mapper | None, frame: Frame, ask: Make
     edges."""
     config, motion, pose = solver.config, ask.motion, ask.pose
     t0 = time.perf_counter()
+    points = None  # the depth residual's points, on the preprocessing's idle worker meanwhile
+    if config.depth_residual and frame.depth is not None:
+        points = beside(depth_points, frame.depth, solver.intrinsics, config.depth_points,
+                        min_depth=config.min_depth, max_depth=config.max_depth,
+                        seed=config.seed + ask.id)
     T_prior = inverse_np(pose) @ motion.poses[-1] if motion.poses else np.eye(4)
     edges = keyframe_edges(frame, config, seed=config.seed + ask.id, T_prior=T_prior,
                            intr=solver.intrinsics, reobs_a=solver.reobs_a)
@@ -190,10 +195,9 @@ def make_keyframe(solver: Solver, mapper: Mapper | None, frame: Frame, ask: Make
         if mapped is not None:  # inline: refined already
             kf = dataclasses.replace(kf, pose=mapped.pose)
         map_ms = (time.perf_counter() - t1) * 1e3
-    if config.depth_residual and frame.depth is not None:
-        edges = edges._replace(**dict(zip(("depth_pts", "depth_normals"), depth_points(
-            frame.depth, solver.intrinsics, config.depth_points, min_depth=config.min_depth,
-            max_depth=config.max_depth, seed=config.seed + ask.id), strict=True)))
+    if points is not None:
+        edges = edges._replace(**dict(zip(("depth_pts", "depth_normals"), points.result(),
+                                          strict=True)))
     kf = dataclasses.replace(kf, edges=KeyframeEdges(*jax.tree.map(jnp.asarray, edges)))
     return Made(kf, (t1 - t0) * 1e3, map_ms, mapped)
 
