@@ -63,8 +63,8 @@ def depth_points(depth: np.ndarray, intr: Intrinsics, count: int, *, min_depth: 
     norm = np.linalg.norm(n, axis=0)
     keep = np.flatnonzero(norm > 0)
     if keep.size > count:
-        keep = np.sort(np.random.default_rng(seed).choice(idx[keep], count, replace=False))
-        keep = np.searchsorted(idx, keep)
+        # (the draw picks positions: the same ones whether among keep or idx[keep])
+        keep = np.sort(np.random.default_rng(seed).choice(keep, count, replace=False))
     n = n[:, keep] / np.maximum(norm[keep], 1e-12)
     n = np.where(n[2] > 0, -n, n)  # facing the camera
     p = back(u[keep], v[keep], z[keep])
