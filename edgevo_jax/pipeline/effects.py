@@ -21,21 +21,17 @@ from ..camera import Intrinsics
 from ..config import Config
 from ..derive import solve_knobs, solve_structure
 from ..frontend import selection
-from ..frontend.align import track
 from ..frontend.chunk import track_next_jit
 from ..frontend.depth import depth_points
 from ..frontend.selection import KeyframeEdges, keyframe_edges
-from ..frontend.shutter import Shutter, depths_at_colour_time, shutter_rate, unroll_edges
+from ..frontend.shutter import depths_at_colour_time, shutter_rate, unroll_edges
 from ..geometry import inverse_np, log_np
 from ..hostmem import aligned_array, to_host
 from ..image.preprocess import Frame, beside
 from ..learn.params import Params, solve_knobs_of
-from ..programs import program
 from . import recovery
 from .decision import Confirm, Keyframe, MakeKeyframe, Search, TrackerState, lost_reason, under
 from .mapping import Mapped, Mapper
-
-_track_jit = program(track, static_argnames="config")
 
 
 class Made(NamedTuple):
@@ -101,12 +97,15 @@ class Solver:
     def dispatch(self, kf: Keyframe, frame: Frame, T_c_k: np.ndarray, rate, last_pose):
         """The edge alignment of ``frame`` to ``kf`` from the start T_cur_kf, dispatched;
         ``rate``: the frame's shutter rate (None: a global shutter), with ``last_pose`` (the
-        last frame's T_world_cam) as its previous one."""
-        shutter = None if rate is None else Shutter(
-            aligned_array(inverse_np(last_pose) @ kf.pose, np.float32), np.float32(rate))
-        return _track_jit(kf.edges, frame.dist, frame.edge_map, np.asarray(T_c_k, np.float32),
-                          self.intrinsics, config=self.structure, knobs=self.knobs,
-                          shutter=shutter)
+        last frame's T_world_cam) as its previous one. It runs the per-frame solve's program
+        (one program to compile, not two): A = T_last_kf (the shutter's previous pose; the
+        start itself where there is no last frame) and B = A T^-1 A, whose constant-velocity
+        prediction A B^-1 A is the start T (to float32 rounding)."""
+        T = np.asarray(T_c_k, np.float64)
+        A = T if last_pose is None else inverse_np(last_pose) @ kf.pose
+        B = A @ inverse_np(T) @ A
+        return self.next(kf, frame, (aligned_array(A, np.float32), aligned_array(B, np.float32)),
+                         None if rate is None else np.float32(rate))
 
     def align(self, kf: Keyframe, frame: Frame, T_c_k: np.ndarray, rate, last_pose):
         """``dispatch``, read back (host arrays)."""
@@ -204,11 +203,11 @@ def make_keyframe(solver: Solver, mapper: Mapper | None, frame: Frame, ask: Make
 
 def warm_up(solver: Solver, mapper: Mapper | None, kf: Keyframe, frame: Frame) -> float:
     """At the first keyframe, before any frame is tracked: compile or load, and run once,
-    every program the run can need (the per-frame solve and the recovery's for the
-    keyframe's slot count; the selection for each candidate buffer size; the window's steps,
-    on its worker), so that no frame waits for one. With ``selection=all`` the slot count
-    follows the keyframe's edges (``selection._bucket``: 1024 to ``max_edges``, five sizes at
-    the default): a keyframe whose count is new compiles its two solves when it is made (a
+    every program the run can need (the solve, the per-frame one's and the recovery's, for
+    the keyframe's slot count; the selection for each candidate buffer size; the window's
+    steps, on its worker), so that no frame waits for one. With ``selection=all`` the slot
+    count follows the keyframe's edges (``selection._bucket``: 1024 to ``max_edges``, five
+    sizes at the default): a keyframe whose count is new compiles its solve when it is made (a
     recording meets one or two sizes; compiling all five first took 80 s here). The
     keyframe's frame is solved against itself and the result dropped. Returns its time
     (ms)."""
