@@ -323,9 +323,19 @@ def align_level(
         return jnp.where(fresh, i, i + 1), tried, jnp.asarray(False)
 
     unset = LevelSystem(jnp.zeros(NUM_SUMS, pts_k.dtype))  # replaced by the first pass
-    _, state, _ = jax.lax.while_loop(
-        cond, body, (jnp.asarray(0), pose_start(T, unset), jnp.asarray(True)))
+    init = _alike(T.t[0], (jnp.asarray(0), pose_start(T, unset), jnp.asarray(True)))
+    _, state, _ = jax.lax.while_loop(cond, body, init)
     return state.x, state.system
+
+
+def _alike(ref: jnp.ndarray, tree):
+    """``tree`` as it is, each leaf passed through ``where(ref == ref, x, x)``: under ``vmap``
+    (the tracker's batched solve, ``chunk.batch_of_one``) every leaf is then batched like
+    ``ref``, so that JAX batches a while loop started from ``tree`` once, not again for each
+    carry its body turns batched (3 of the per-frame solve's 5 s of tracing). XLA folds the
+    select away: the compiled program is the same."""
+    same = ref == ref
+    return jax.tree.map(lambda x: jnp.where(same, x, x), tree)
 
 
 def rms_flow(uv_from: jnp.ndarray, uv_to: jnp.ndarray, mask: jnp.ndarray) -> jnp.ndarray:
