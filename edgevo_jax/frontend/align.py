@@ -332,8 +332,8 @@ def _alike(ref: jnp.ndarray, tree):
     """``tree`` as it is, each leaf passed through ``where(ref == ref, x, x)``: under ``vmap``
     (the tracker's batched solve, ``chunk.batch_of_one``) every leaf is then batched like
     ``ref``, so that JAX batches a while loop started from ``tree`` once, not again for each
-    carry its body turns batched (3 of the per-frame solve's 5 s of tracing). XLA folds the
-    select away: the compiled program is the same."""
+    carry its body turns batched (docs/results.md). XLA folds the select away: the results
+    are the same to the bit."""
     same = ref == ref
     return jax.tree.map(lambda x: jnp.where(same, x, x), tree)
 

@@ -203,8 +203,8 @@ def make_keyframe(solver: Solver, mapper: Mapper | None, frame: Frame, ask: Make
 
 def warm_up(solver: Solver, mapper: Mapper | None, kf: Keyframe, frame: Frame) -> float:
     """At the first keyframe, before any frame is tracked: compile or load, and run once,
-    every program the run can need (the solve, the per-frame one's and the recovery's, for
-    the keyframe's slot count; the selection for each candidate buffer size; the window's
+    every program the run can need (the solve, which the recovery shares, for the
+    keyframe's slot count; the selection for each candidate buffer size; the window's
     steps, on its worker), so that no frame waits for one. With ``selection=all`` the slot
     count follows the keyframe's edges (``selection._bucket``: 1024 to ``max_edges``, five
     sizes at the default): a keyframe whose count is new compiles its solve when it is made (a
@@ -216,8 +216,7 @@ def warm_up(solver: Solver, mapper: Mapper | None, kf: Keyframe, frame: Frame) -
     config = solver.config
     rel = (aligned_array(inverse_np(kf.pose) @ kf.pose, np.float32),) * 2
     rate = None if solver.readout_s <= 0 else np.float32(0.0)
-    jax.block_until_ready(solver.next(kf, frame, rel, rate))
-    solver.align(kf, frame, np.eye(4), rate, kf.pose)
+    jax.block_until_ready(solver.next(kf, frame, rel, rate))  # the recovery's program too
     h, w = frame.shape
     selection.warm_up(config, intr=solver.intrinsics, width=w, height=h, reobs_a=solver.reobs_a)
     if warm_map is not None:
