@@ -24,7 +24,8 @@ On a new keyframe (``LocalMap.add_keyframe``):
    compilation). The tracker then continues from the refined pose of the new keyframe.
 
 Every array handed to JAX has a fixed shape per configuration: one compilation each for the
-activation, the refinement and the two marginalisations.
+activation, the refinement and the marginalisation (of the keyframe and of the stale edges,
+from one evaluation of the window's residuals).
 """
 
 from __future__ import annotations
@@ -49,12 +50,11 @@ from .activation import activate, reproject
 from .prior import (
     Prior,
     append_keyframe_to_prior,
-    marginalize_edges,
     marginalize_keyframe,
     no_prior,
 )
 from .refine import refine
-from .window import WindowProblem, remove_keyframe
+from .window import WindowProblem
 
 
 @dataclass
@@ -172,24 +172,16 @@ def _permute_prior(prior: Prior, order: jnp.ndarray) -> Prior:
                  intrinsics=prior.intrinsics, mask=prior.mask[idx])
 
 
-def _marginalize_first(problem: WindowProblem, numbers, prior: Prior, order: jnp.ndarray, *,
-                       config: MappingConfig) -> Prior:
+def _marginalize(problem: WindowProblem, numbers, prior: Prior, order: jnp.ndarray,
+                 stale: jnp.ndarray, *, config: MappingConfig) -> Prior:
     """``marginalize_keyframe`` of keyframe 0 of ``problem`` (the window taken in the new
-    ``order``), with the prior permuted to that order first (numbers: ``split_window``)."""
+    ``order``), with the prior permuted to that order first, and of the ``stale`` (n - 1, A)
+    edges of the window without it (numbers: ``split_window``)."""
     return marginalize_keyframe(problem, 0, join_window(config, numbers),
-                                _permute_prior(prior, order))
+                                _permute_prior(prior, order), stale=stale)
 
 
-def _marginalize_stale(problem: WindowProblem, numbers, stale: jnp.ndarray, prior: Prior, *,
-                       config: MappingConfig) -> Prior:
-    """``marginalize_edges`` of the ``stale`` (n - 1, A) edges of the window without its
-    keyframe 0 (which ``_marginalize_first`` took out)."""
-    return marginalize_edges(remove_keyframe(problem, 0), stale, join_window(config, numbers),
-                             prior)
-
-
-_marginalize_first_jit = program(_marginalize_first, static_argnames="config")
-_marginalize_stale_jit = program(_marginalize_stale, static_argnames="config")
+_marginalize_jit = program(_marginalize, static_argnames="config")
 _append_to_prior_jit = program(append_keyframe_to_prior)
 
 
@@ -270,11 +262,10 @@ class LocalMap:
         scratch._activate(empty())
         scratch.window.append(empty())
         problem, _ = scratch._problem()
-        prior = _marginalize_first_jit(problem, self._numbers, no_prior(problem),
-                                       np.arange(n, dtype=np.int32), config=self._structure)
-        prior = _marginalize_stale_jit(problem, self._numbers,
-                                       np.ones((n - 1, cfg.active_per_keyframe), bool), prior,
-                                       config=self._structure)
+        prior = _marginalize_jit(problem, self._numbers, no_prior(problem),
+                                 np.arange(n, dtype=np.int32),
+                                 np.ones((n - 1, cfg.active_per_keyframe), bool),
+                                 config=self._structure)
         scratch.prior = _append_to_prior_jit(prior, np.eye(4, dtype=np.float32))
         scratch._refine()
 
@@ -376,12 +367,8 @@ class LocalMap:
             prior, order = no_prior(problem), np.arange(order.size)
         else:
             prior = self.prior
-        prior = _marginalize_first_jit(problem, self._numbers, prior, order.astype(np.int32),
-                                       config=self._structure)
-        if stale.any():
-            prior = _marginalize_stale_jit(problem, self._numbers, stale, prior,
-                                           config=self._structure)
-        self.prior = prior
+        self.prior = _marginalize_jit(problem, self._numbers, prior, order.astype(np.int32),
+                                      stale, config=self._structure)
 
     # -- helpers --------------------------------------------------------------------------
     def _visible(self, host: _WindowKeyframe, T_w_target: np.ndarray) -> np.ndarray:

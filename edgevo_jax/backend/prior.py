@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -15,8 +16,12 @@ from ..derive import MappingConfig
 from ..geometry import Pose
 from .schur import eliminate_diagonal, marginalize
 from .window import (
+    EdgeResiduals,
     NormalEquations,
     WindowProblem,
+    as_mapping_config,
+    edge_residuals,
+    inlier_mask,
     normal_equations,
     pair_hosts,
     remove_keyframe,
@@ -91,7 +96,7 @@ def with_prior(ne: NormalEquations, problem: WindowProblem, prior: Prior | None)
 
 def marginalize_keyframe(
     problem: WindowProblem, drop_index: int, config: MappingConfig | Config,
-    prior: Prior | None = None,
+    prior: Prior | None = None, *, stale: jnp.ndarray | None = None,
 ) -> Prior:
     """Prior on the remaining poses and the intrinsics left by marginalising keyframe
     ``drop_index``'s pose and the inverse depths of the edges it hosts.
@@ -105,24 +110,36 @@ def marginalize_keyframe(
     Linearised once, here: the returned prior's H is the first-estimate one. The result is
     in the layout of ``remove_keyframe(problem, drop_index)`` (its linearisation point: the
     current remaining poses and intrinsics).
+    ``stale`` (n - 1, A) bool, optional: edges of the remaining keyframes (in that layout)
+    to marginalise next, as ``marginalize_edges`` of them on ``remove_keyframe(problem,
+    drop_index)`` would, from the same evaluation of the residuals (both steps linearise at
+    the same estimate); none set: the keyframe's prior as it is.
     Cost: the normal equations plus O(m^2 A) for the depths and a 6 x 6 pseudo-inverse.
     """
     n, _, A = problem.uv.shape
     m = 6 * n + 4
+    cfg = as_mapping_config(config)
+    e = edge_residuals(problem, cfg.eta)
     hosts = jnp.arange(n) == drop_index
-    ne = with_prior(normal_equations(problem, config, hosts=hosts), problem, prior)
+    ne = with_prior(normal_equations(problem, cfg, hosts=hosts, residuals=e), problem, prior)
     cols = slice(drop_index * A, (drop_index + 1) * A)
     Hcp, h_pp = ne.H_cp[:, cols], ne.h_pp[cols]
     # the depths first (diagonal block: 1 / h, zero for unobserved slots), then the pose's
     # 6 x 6 block: the same Schur complement as eliminating both at once, without the
     # (6 + A)^2 pseudo-inverse (whose eigh took up to a second on some windows)
-    e = eliminate_diagonal(ne.H_cc, Hcp, h_pp, ne.b_c, ne.b_p[cols])
+    el = eliminate_diagonal(ne.H_cc, Hcp, h_pp, ne.b_c, ne.b_p[cols])
     pose = np.arange(6 * drop_index, 6 * drop_index + 6)
     keep = np.setdiff1d(np.arange(m), pose)
-    Hm, bm = marginalize(e.S, e.r, keep, pose)
+    Hm, bm = marginalize(el.S, el.r, keep, pose)
     rest = remove_keyframe(problem, drop_index)
-    return Prior(H=Hm, b=bm, poses=rest.poses, intrinsics=rest.intrinsics,
-                 mask=jnp.ones(m - 6, bool))
+    out = Prior(H=Hm, b=bm, poses=rest.poses, intrinsics=rest.intrinsics,
+                mask=jnp.ones(m - 6, bool))
+    if stale is None:
+        return out
+    edges = jnp.concatenate([stale[:drop_index], jnp.zeros((1, A), bool),
+                             stale[drop_index:]])
+    also = _edges_marginalized(problem, e, edges, cfg, out, drop_index)
+    return jax.tree.map(lambda a, b: jnp.where(jnp.any(stale), a, b), also, out)
 
 
 def marginalize_edges(
@@ -134,10 +151,39 @@ def marginalize_edges(
     diagonal, so the Schur complement (``schur.eliminate_diagonal``) needs no inverse but
     1 / h_pp. Linearisation point: the
     current poses and intrinsics."""
-    n = problem.poses.shape[0]
-    inl = normal_equations(problem, config).mask
-    ne = normal_equations(problem, config, mask=inl & edges[pair_hosts(n)])
-    H_p, g_p, _ = prior_terms(problem.poses, problem.intrinsics, prior)
-    e = eliminate_diagonal(H_p + ne.H_cc, ne.H_cp, ne.h_pp, g_p + ne.b_c, ne.b_p)
-    return Prior(H=e.S, b=e.r, poses=problem.poses, intrinsics=problem.intrinsics,
+    cfg = as_mapping_config(config)
+    return _edges_marginalized(problem, edge_residuals(problem, cfg.eta), edges, cfg, prior)
+
+
+def _edges_marginalized(
+    problem: WindowProblem, e: EdgeResiduals, edges: jnp.ndarray, cfg: MappingConfig,
+    prior: Prior, dropped: int | None = None,
+) -> Prior:
+    """``marginalize_edges`` of ``edges`` (n, A) with the problem's residuals ``e``; with
+    ``dropped`` (static) a keyframe already marginalised into ``prior``: its residuals and
+    variables are left out, and the result is in the layout of ``remove_keyframe(problem,
+    dropped)``."""
+    n, _, A = problem.uv.shape
+    inl = inlier_mask(e, e.considered, cfg) & edges[pair_hosts(n)]
+    poses = problem.poses
+    if dropped is not None:  # no residual in the dropped keyframe (nor of its edges: edges)
+        inl = inl & (jnp.arange(n) != dropped)[:, None, None]
+    ne = normal_equations(problem, cfg, mask=inl, residuals=e)
+    if dropped is not None:
+        ne = ne._replace(H_cc=_without(_without(ne.H_cc, 0, 6 * dropped, 6), 1, 6 * dropped, 6),
+                         H_cp=_without(_without(ne.H_cp, 0, 6 * dropped, 6), 1, A * dropped, A),
+                         h_pp=_without(ne.h_pp, 0, A * dropped, A),
+                         b_c=_without(ne.b_c, 0, 6 * dropped, 6),
+                         b_p=_without(ne.b_p, 0, A * dropped, A))
+        poses = remove_keyframe(problem, dropped).poses
+    H_p, g_p, _ = prior_terms(poses, problem.intrinsics, prior)
+    el = eliminate_diagonal(H_p + ne.H_cc, ne.H_cp, ne.h_pp, g_p + ne.b_c, ne.b_p)
+    return Prior(H=el.S, b=el.r, poses=poses, intrinsics=problem.intrinsics,
                  mask=jnp.ones_like(prior.mask))
+
+
+def _without(x: jnp.ndarray, axis: int, start: int, size: int) -> jnp.ndarray:
+    """``x`` without the ``size`` entries from ``start`` along ``axis`` (static): slices."""
+    head = jax.lax.slice_in_dim(x, 0, start, axis=axis)
+    tail = jax.lax.slice_in_dim(x, start + size, x.shape[axis], axis=axis)
+    return jnp.concatenate([head, tail], axis=axis)

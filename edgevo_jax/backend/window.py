@@ -333,6 +333,7 @@ def inlier_mask(e: EdgeResiduals, considered: jnp.ndarray, cfg: MappingConfig) -
 def normal_equations(
     problem: WindowProblem, config: MappingConfig | Config, *,
     hosts: jnp.ndarray | None = None, mask: jnp.ndarray | None = None,
+    residuals: EdgeResiduals | None = None,
 ) -> NormalEquations:
     """Huber-weighted Gauss-Newton blocks of the window at the current estimate.
 
@@ -341,11 +342,13 @@ def normal_equations(
     in view (a fixed inlier set: ``refine`` judges a step with the set of the point it starts
     from, so that the cost it compares is continuous). hosts (n,) bool, optional: only the
     residuals of edges hosted by these keyframes count (``marginalize_keyframe``).
+    ``residuals``: the problem's ``edge_residuals`` at this estimate, where the caller has
+    them already (one evaluation for several systems at one linearisation point).
     Fixed shapes; the per-pair sums go into the blocks through static incidence tables (no
     scatter); the dense full Hessian is never formed.
     """
     cfg = as_mapping_config(config)
-    e = edge_residuals(problem, cfg.eta)
+    e = edge_residuals(problem, cfg.eta) if residuals is None else residuals
     considered = _considered(e, hosts)
     inl = inlier_mask(e, considered, cfg) if mask is None else mask & considered & e.ok
     return with_depth_prior(normal_blocks(e, considered, inl, cfg), problem, cfg, hosts)

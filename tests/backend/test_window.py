@@ -569,6 +569,33 @@ def test_marginalizing_edges_equals_the_dense_schur_complement(refined):
         np.testing.assert_allclose(twice.H, 2 * np.asarray(out.H), atol=1e-8 * scale)
 
 
+@pytest.mark.parametrize("drop", [0, 2])
+def test_marginalizing_a_keyframe_and_stale_edges_at_once_is_the_two_steps(refined, drop):
+    """marginalize_keyframe with ``stale`` edges (one evaluation of the residuals) equals
+    marginalize_keyframe, then marginalize_edges of those edges on the window without the
+    keyframe (its residuals, its depths and its pose left out); with no stale edge, it is the
+    keyframe's prior alone."""
+    _, full, _ = refined
+    with jax.enable_x64(True):
+        n, _, A = full.uv.shape
+        rest = remove_keyframe(full, drop)
+        stale = np.asarray(rest.valid) & (np.random.default_rng(3).random((n - 1, A)) < 0.3)
+        assert stale.sum() > 10
+        first = marginalize_keyframe_jit(full, drop, WINDOW_CONFIG)
+        ref = jax.jit(marginalize_edges, static_argnames="config")(
+            rest, jnp.asarray(stale), WINDOW_CONFIG, first)
+        both = marginalize_keyframe_jit(full, drop, WINDOW_CONFIG, stale=jnp.asarray(stale))
+        scale = np.abs(np.asarray(ref.H)).max()
+        assert np.abs(np.asarray(ref.H) - np.asarray(first.H)).max() > 1e-3 * scale
+        np.testing.assert_allclose(both.H, ref.H, atol=1e-10 * scale)
+        np.testing.assert_allclose(both.b, ref.b, atol=1e-10 * np.abs(np.asarray(ref.b)).max())
+        np.testing.assert_array_equal(both.poses, rest.poses)
+        none = marginalize_keyframe_jit(full, drop, WINDOW_CONFIG,
+                                        stale=jnp.zeros((n - 1, A), bool))
+        for a, b in zip(none, first, strict=True):
+            np.testing.assert_array_equal(a, b)
+
+
 def test_depth_prior_adds_its_curvature_gradient_and_cost(refined):
     """With measured inverse depths rho_prior and sigma, the depth block gains 1 / sigma^2,
     the depth gradient (rho - rho_prior) / sigma^2 and the cost 0.5 ((rho - rho_prior) /
