@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from concurrent.futures import Future
 from typing import NamedTuple
 
 import jax
@@ -201,25 +202,24 @@ def make_keyframe(solver: Solver, mapper: Mapper | None, frame: Frame, ask: Make
     return Made(kf, (t1 - t0) * 1e3, map_ms, mapped)
 
 
-def warm_up(solver: Solver, mapper: Mapper | None, kf: Keyframe, frame: Frame) -> float:
+def warm_up(solver: Solver, warm_map: Future | None, kf: Keyframe, frame: Frame) -> None:
     """At the first keyframe, before any frame is tracked: compile or load, and run once,
     every program the run can need (the solve, which the recovery shares, for the
-    keyframe's slot count; the selection for each candidate buffer size; the window's
-    steps, on its worker), so that no frame waits for one. With ``selection=all`` the slot
-    count follows the keyframe's edges (``selection._bucket``: 1024 to ``max_edges``, five
-    sizes at the default): a keyframe whose count is new compiles its solve when it is made (a
-    recording meets one or two sizes; compiling all five first took 80 s here). The
-    keyframe's frame is solved against itself and the result dropped. Returns its time
-    (ms)."""
-    t0 = time.perf_counter()
-    warm_map = mapper.warm_up() if mapper is not None else None
+    keyframe's slot count; the selection for each candidate buffer size, on the
+    preprocessing's idle worker meanwhile), and wait for the window's (``Mapper.warm_up``,
+    started on its worker when it was made: ``warm_map``), so that no frame waits for one.
+    With ``selection=all`` the slot count follows the keyframe's edges (``selection._bucket``:
+    1024 to ``max_edges``, five sizes at the default): a keyframe whose count is new compiles
+    its solve when it is made (a recording meets one or two sizes; compiling all five first
+    took 80 s here). The keyframe's frame is solved against itself and the result dropped."""
     config = solver.config
+    h, w = frame.shape
+    sizes = beside(selection.warm_up, config, intr=solver.intrinsics, width=w, height=h,
+                   reobs_a=solver.reobs_a)
     rel = (aligned_array(inverse_np(kf.pose) @ kf.pose, np.float32),) * 2
     rate = None if solver.readout_s <= 0 else np.float32(0.0)
     jax.block_until_ready(solver.next(kf, frame, rel, rate))  # the recovery's program too
-    h, w = frame.shape
-    selection.warm_up(config, intr=solver.intrinsics, width=w, height=h, reobs_a=solver.reobs_a)
+    sizes.result()
     if warm_map is not None:
         warm_map.result()
-    return (time.perf_counter() - t0) * 1e3
 
