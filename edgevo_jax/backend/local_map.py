@@ -226,10 +226,10 @@ class LocalMap:
             activatable = valid & depth_continuous(
                 frame.depth, uv, grad, max_step=cfg.activation_depth_step,
                 reach=cfg.activation_depth_reach)
-        dist0 = jnp.asarray(frame.dist[0])
+        dist0 = jax.device_put(frame.dist[0])
         new = _WindowKeyframe(
             pose=np.asarray(pose, np.float64), uv=uv, rho=rho, grad=grad, valid=valid,
-            dist0=dist0, edge_map=EdgeMap(dist0, jnp.asarray(frame.edge_map.code)),
+            dist0=dist0, edge_map=EdgeMap(dist0, jax.device_put(frame.edge_map.code)),
             activatable=activatable,
             row_twist=np.zeros(6) if row_twist is None else np.asarray(row_twist, np.float64))
         if self.prior is not None:
@@ -247,8 +247,8 @@ class LocalMap:
         the run waits for a compilation. This window is not touched."""
         cfg, (height, width) = self.config, self.shape
         n, K = cfg.window_size, cfg.num_edges
-        field0 = jnp.zeros((height, width), jnp.float32)
-        edge_map = EdgeMap(field0, jnp.zeros((height, width), jnp.uint8))
+        field0 = jax.device_put(np.zeros((height, width), np.float32))
+        edge_map = EdgeMap(field0, jax.device_put(np.zeros((height, width), np.uint8)))
 
         def empty() -> _WindowKeyframe:
             return _WindowKeyframe(
@@ -311,15 +311,15 @@ class LocalMap:
             rho.append(r)
             sensor.append(r0)
             valid.append(np.arange(A) < m)
+        put = jax.device_put  # a transfer; jnp.asarray compiles a program per new shape
         problem = WindowProblem(
-            poses=jnp.asarray(np.stack([kf.pose for kf in self.window]), jnp.float32),
-            uv=jnp.asarray(np.stack(uv)), rho=jnp.asarray(np.stack(rho)),
-            valid=jnp.asarray(np.stack(valid)),
+            poses=put(np.stack([kf.pose for kf in self.window]).astype(np.float32)),
+            uv=put(np.stack(uv)), rho=put(np.stack(rho)), valid=put(np.stack(valid)),
             fields=tuple(kf.dist0 for kf in self.window),  # per keyframe: nothing copied
-            intrinsics=jnp.asarray(self.intrinsics), grad=jnp.asarray(np.stack(grad)),
+            intrinsics=put(np.asarray(self.intrinsics)), grad=put(np.stack(grad)),
             edge_map=tuple(kf.edge_map for kf in self.window),
-            rho_prior=jnp.asarray(np.stack(sensor)),
-            row_twists=jnp.asarray(np.stack([kf.row_twist for kf in self.window]), jnp.float32)
+            rho_prior=put(np.stack(sensor)),
+            row_twists=put(np.stack([kf.row_twist for kf in self.window]).astype(np.float32))
             if self.rolling_shutter else None)
         return problem, picks
 

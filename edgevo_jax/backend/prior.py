@@ -69,8 +69,9 @@ def no_prior(problem: WindowProblem) -> Prior:
     """The zero prior of the window's layout (constrains nothing)."""
     m = 6 * problem.poses.shape[0] + 4
     dtype = problem.rho.dtype
-    return Prior(H=jnp.zeros((m, m), dtype), b=jnp.zeros(m, dtype), poses=problem.poses,
-                 intrinsics=problem.intrinsics, mask=jnp.zeros(m, bool))
+    H, b, mask = jax.device_put((np.zeros((m, m), dtype), np.zeros(m, dtype),
+                                 np.zeros(m, bool)))  # transfers, no program compiled
+    return Prior(H=H, b=b, poses=problem.poses, intrinsics=problem.intrinsics, mask=mask)
 
 
 def append_keyframe_to_prior(prior: Prior, T_w_new: jnp.ndarray) -> Prior:

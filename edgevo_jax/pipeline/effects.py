@@ -15,7 +15,6 @@ from concurrent.futures import Future
 from typing import NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from ..camera import Intrinsics
@@ -24,7 +23,7 @@ from ..derive import solve_knobs, solve_structure
 from ..frontend import selection
 from ..frontend.chunk import track_next_jit
 from ..frontend.depth import depth_points
-from ..frontend.selection import KeyframeEdges, keyframe_edges
+from ..frontend.selection import keyframe_edges
 from ..frontend.shutter import depths_at_colour_time, shutter_rate, unroll_edges
 from ..geometry import inverse_np, log_np
 from ..hostmem import aligned_array, to_host
@@ -66,7 +65,7 @@ class Solver:
         refines the intrinsics): a jitted call converts each host argument anew."""
         key = tuple(self.intrinsics)
         if self._constants_key != key:
-            self._constants = (Intrinsics(*jnp.asarray(key, jnp.float32)),
+            self._constants = (Intrinsics(*jax.device_put(tuple(np.float32(v) for v in key))),
                                jax.device_put(self.knobs))
             self._constants_key = key
         return self._constants
@@ -198,7 +197,7 @@ def make_keyframe(solver: Solver, mapper: Mapper | None, frame: Frame, ask: Make
     if points is not None:
         edges = edges._replace(**dict(zip(("depth_pts", "depth_normals"), points.result(),
                                           strict=True)))
-    kf = dataclasses.replace(kf, edges=KeyframeEdges(*jax.tree.map(jnp.asarray, edges)))
+    kf = dataclasses.replace(kf, edges=jax.device_put(edges))
     return Made(kf, (t1 - t0) * 1e3, map_ms, mapped)
 
 

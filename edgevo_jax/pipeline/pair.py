@@ -16,7 +16,6 @@ from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from ..camera import Intrinsics
@@ -176,7 +175,7 @@ def align(
         edges = edges._replace(**dict(zip(("depth_pts", "depth_normals"), depth_points(
             source.depth, intr, config.depth_points, min_depth=config.min_depth,
             max_depth=config.max_depth, seed=config.seed), strict=True)))
-    kf = _Source(source, KeyframeEdges(*jax.tree.map(jnp.asarray, edges)))
+    kf = _Source(source, jax.device_put(edges))
     structure, knobs = solve_structure(config), solve_knobs(config)
 
     def solve(k: _Source, frame: Frame, T_c_k: np.ndarray):
