@@ -182,7 +182,6 @@ def _marginalize(problem: WindowProblem, numbers, prior: Prior, order: jnp.ndarr
 
 
 _marginalize_jit = program(_marginalize, static_argnames="config")
-_append_to_prior_jit = program(append_keyframe_to_prior)
 
 
 @dataclass
@@ -233,7 +232,8 @@ class LocalMap:
             activatable=activatable,
             row_twist=np.zeros(6) if row_twist is None else np.asarray(row_twist, np.float64))
         if self.prior is not None:
-            self.prior = _append_to_prior_jit(self.prior, np.asarray(new.pose, np.float32))
+            self.prior = jax.device_put(append_keyframe_to_prior(
+                self.prior, np.asarray(new.pose, np.float32)))
         self._activate(new)
         self.window.append(new)
         if len(self.window) == cfg.window_size:
@@ -266,7 +266,7 @@ class LocalMap:
                                  np.arange(n, dtype=np.int32),
                                  np.ones((n - 1, cfg.active_per_keyframe), bool),
                                  config=self._structure)
-        scratch.prior = _append_to_prior_jit(prior, np.eye(4, dtype=np.float32))
+        scratch.prior = jax.device_put(append_keyframe_to_prior(prior, np.eye(4, dtype=np.float32)))
         scratch._refine()
 
     # -- steps ----------------------------------------------------------------------------

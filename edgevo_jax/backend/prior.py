@@ -74,16 +74,23 @@ def no_prior(problem: WindowProblem) -> Prior:
     return Prior(H=H, b=b, poses=problem.poses, intrinsics=problem.intrinsics, mask=mask)
 
 
-def append_keyframe_to_prior(prior: Prior, T_w_new: jnp.ndarray) -> Prior:
+def append_keyframe_to_prior(prior: Prior, T_w_new: np.ndarray) -> Prior:
     """The prior in the layout of a window with one more keyframe, appended last (pose
-    T_w_new (4, 4)): zero rows and columns for its pose, which it does not constrain."""
-    m = prior.H.shape[0]
+    T_w_new (4, 4)): zero rows and columns for its pose, which it does not constrain. On the
+    host (numpy arrays out, the intrinsics as given): a copy into a larger zero layout, which
+    needs no compiled program."""
+    H0, b0, poses0, mask0 = (np.asarray(x) for x in (prior.H, prior.b, prior.poses,
+                                                      prior.mask))
+    m = H0.shape[0]
     at = m - 4  # the new pose goes between the poses and the intrinsics
     idx = np.concatenate([np.arange(at), np.arange(at + 6, m + 6)])
-    H = jnp.zeros((m + 6, m + 6), prior.H.dtype).at[np.ix_(idx, idx)].set(prior.H)
-    b = jnp.zeros(m + 6, prior.b.dtype).at[idx].set(prior.b)
-    mask = jnp.zeros(m + 6, bool).at[idx].set(prior.mask)
-    poses = jnp.concatenate([prior.poses, jnp.asarray(T_w_new, prior.poses.dtype)[None]])
+    H = np.zeros((m + 6, m + 6), H0.dtype)
+    H[np.ix_(idx, idx)] = H0
+    b = np.zeros(m + 6, b0.dtype)
+    b[idx] = b0
+    mask = np.zeros(m + 6, bool)
+    mask[idx] = mask0
+    poses = np.concatenate([poses0, np.asarray(T_w_new, poses0.dtype)[None]])
     return Prior(H=H, b=b, poses=poses, intrinsics=prior.intrinsics, mask=mask)
 
 
