@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from concurrent.futures import Future
 from typing import NamedTuple
 
 import jax
@@ -201,12 +200,12 @@ def make_keyframe(solver: Solver, mapper: Mapper | None, frame: Frame, ask: Make
     return Made(kf, (t1 - t0) * 1e3, map_ms, mapped)
 
 
-def warm_up(solver: Solver, warm_map: Future | None, kf: Keyframe, frame: Frame) -> None:
+def warm_up(solver: Solver, mapper: Mapper | None, kf: Keyframe, frame: Frame) -> None:
     """At the first keyframe, before any frame is tracked: compile or load, and run once,
     every program the run can need (the solve, which the recovery shares, for the
     keyframe's slot count; the selection for each candidate buffer size, on the
     preprocessing's idle worker meanwhile), and wait for the window's (``Mapper.warm_up``,
-    started on its worker when it was made: ``warm_map``), so that no frame waits for one.
+    started on its worker when it was made), so that no frame waits for one.
     With ``selection=all`` the slot count follows the keyframe's edges (``selection._bucket``:
     1024 to ``max_edges``, five sizes at the default): a keyframe whose count is new compiles
     its solve when it is made (a recording meets one or two sizes; compiling all five first
@@ -219,6 +218,6 @@ def warm_up(solver: Solver, warm_map: Future | None, kf: Keyframe, frame: Frame)
     rate = None if solver.readout_s <= 0 else np.float32(0.0)
     jax.block_until_ready(solver.next(kf, frame, rel, rate))  # the recovery's program too
     sizes.result()
-    if warm_map is not None:
-        warm_map.result()
+    if mapper is not None:
+        mapper.warmed()
 

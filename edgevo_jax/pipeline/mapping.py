@@ -68,14 +68,23 @@ class Mapper:
                       if self.lag > 0 else None)
         self._pending: deque[tuple[int, object, Future]] = deque()  # (due frame, key, step)
         self.worker_ms: list[float] = []  # the window's time per keyframe, in order
+        self.warm_since: float | None = None  # when ``warm_up`` started (perf_counter)
+        self._warm: Future | None = None
 
-    def warm_up(self) -> Future | None:
-        """Compile or load the window's programs (``LocalMap.warm_up``): beside tracking on
-        the worker, ahead of every keyframe (returns its Future), inline at once (None)."""
+    def warm_up(self) -> None:
+        """Start compiling or loading the window's programs (``LocalMap.warm_up``): beside
+        tracking on the worker, ahead of every keyframe; inline at once. ``warmed`` waits for
+        them."""
+        self.warm_since = time.perf_counter()
         if self._pool is None:
             self.local_map.warm_up()
-            return None
-        return self._pool.submit(self.local_map.warm_up)
+        else:
+            self._warm = self._pool.submit(self.local_map.warm_up)
+
+    def warmed(self) -> None:
+        """Wait until the programs ``warm_up`` started are ready."""
+        if self._warm is not None:
+            self._warm.result()
 
     def add(self, key: object, pose: np.ndarray, edges: KeyframeEdges, frame: Frame,
             frame_index: int, row_twist: np.ndarray | None = None) -> Mapped | None:

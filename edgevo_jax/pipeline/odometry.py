@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from concurrent.futures import Future
 from dataclasses import dataclass
 
 import numpy as np
@@ -101,7 +100,6 @@ class Odometry:
         self.refinements: list = []  # the window's keyframe poses, as taken (``Refinement``)
         self.warm_up_ms: float | None = None  # time of the warm-up (at the first keyframe)
         self._mapper: Mapper | None = None  # made with the first keyframe (image size)
-        self._warming: tuple[float, Future | None] | None = None  # (since, window's warm-up)
         self._handed: dict[int, tuple[float, np.ndarray]] = {}  # in the window: time, pose
         self._map_ms, self._moved = 0.0, False  # this frame's time on the window; new intrinsics
         self._last_t: float | None = None
@@ -317,9 +315,8 @@ class Odometry:
         if self.config.mapping and self._mapper is None:  # the window, made with the first keyframe
             self._mapper = Mapper(self.config, self.intrinsics, frame.shape,
                                   rolling_shutter=self.readout_s > 0)
-        if self.warm_up_ms is None and self._warming is None:  # the window's programs compile
-            self._warming = (time.perf_counter(),  # on its worker from now, beside the rest
-                             None if self._mapper is None else self._mapper.warm_up())
+            if self.warm_up_ms is None:  # its programs compile on its worker from now
+                self._mapper.warm_up()
         made = make_keyframe(self._solver, self._mapper, frame, action, state.index)
         if made is None:
             return dataclasses.replace(ev, made_asked=True)
@@ -329,8 +326,8 @@ class Odometry:
         if made.mapped is not None:
             self._take(made.mapped, state.index - 1)
         if self.warm_up_ms is None:
-            t0, warm_map = self._warming
-            warm_up(self._solver, warm_map, made.keyframe, frame)
+            t0 = self._mapper.warm_since if self._mapper is not None else time.perf_counter()
+            warm_up(self._solver, self._mapper, made.keyframe, frame)
             self.warm_up_ms = (time.perf_counter() - t0) * 1e3
         return dataclasses.replace(ev, made_asked=True,
                                    made=decision.NewKeyframe(made.keyframe, made.select_ms))
