@@ -172,6 +172,26 @@ class Config:
     activation_depth_reach: int = 5
     """[px] How far to either side of an edge the depth test reads. Why: a depth step spreads
     up to 4 px (9 x 9 matching windows), plus a pixel of Canny localisation."""
+    # --- the keyframe map (map/, pipeline/relocalise.py) ---
+    map: bool = True
+    """[-] Keep every keyframe in a map: a lost or doubted frame, and a frame tracked from a
+    keyframe made at a guess, asks it where it is (place recognition, a feature start, the
+    edge alignment, verified); an older keyframe that sees a frame takes over from a new
+    keyframe. False: the paper's odometry, bit for bit. Why: ``docs/decisions.md``, "The
+    keyframe map"."""
+    map_max_keyframes: int = 5000
+    """[keyframes] The map keeps at most this many (~80 kB each; later ones are not kept, and
+    a warning says so). Why: 400 MB at most, ten minutes of a camera making a keyframe
+    every ~4 frames (``docs/results.md``, "The keyframe map's memory")."""
+    map_candidates: int = 3
+    """[keyframes] Place recognition's candidates each query verifies (most alike first),
+    besides the one a guessed pose would see best. Why: ``docs/decisions.md``, "The keyframe
+    map"."""
+    map_overlap: float = 0.7
+    """[-] A keyframe of the map sees a frame when this share of its edges projects into the
+    frame at the frame's pose (predicted overlap): the bar for an older keyframe to take
+    over on a revisit, and for a keyframe to be tried at a guessed pose. Why:
+    ``docs/decisions.md``, "The keyframe map"."""
     # --- determinism ---
     seed: int = 0
     """[-] Seed of the edge selection's random choices (keyframe k draws with seed + k)."""
@@ -207,8 +227,10 @@ class Config:
             raise ValueError("Config.mapping_lag must be >= 0 (0: the window runs inline)")
         if not self.activation_depth_step >= 0:
             raise ValueError("Config.activation_depth_step must be >= 0 (0: no depth test)")
+        if not 0.0 < self.map_overlap <= 1.0:
+            raise ValueError("Config.map_overlap must be in (0, 1]")
         for name in ("active_per_keyframe", "activation_cell", "mapping_iterations",
-                     "activation_depth_reach"):
+                     "activation_depth_reach", "map_max_keyframes", "map_candidates"):
             if getattr(self, name) < 1:
                 raise ValueError(f"Config.{name} must be positive")
 

@@ -178,6 +178,22 @@ class TrajectoryWriter:
         self._file.flush()
         self.count += 1
 
+    def rewrite(self, timestamps: np.ndarray, poses7: np.ndarray) -> None:
+        """Replace every line written so far by these poses (N timestamps, (N, 7) poses, the
+        same count: earlier poses moved, e.g. into the keyframe map's frame); ValueError for
+        another count, a non-finite pose or a closed writer."""
+        if self._file is None:
+            raise ValueError(f"TrajectoryWriter for {self.path} is closed")
+        if len(timestamps) != self.count or len(poses7) != self.count:
+            raise ValueError(f"rewrite needs the {self.count} poses written, got "
+                             f"{len(timestamps)} timestamps and {len(poses7)} poses")
+        lines = [_format_line(*_check_pose7(t, p)) for t, p in zip(timestamps, poses7,
+                                                                     strict=True)]
+        self._file.seek(0)
+        self._file.truncate()
+        self._file.write("".join(lines))
+        self._file.flush()
+
     def close(self) -> None:
         """Finish: rename ``.part`` to the final path (idempotent)."""
         if self._file is None:

@@ -14,7 +14,7 @@ from pathlib import Path
 PKG = Path(__file__).resolve().parents[1] / "edgevo_jax"
 
 #: top to bottom: each part may import only from parts after it
-LAYERS = ["cli", "__init__", "viz", "pipeline", "peers", "learn", "backend", "frontend",
+LAYERS = ["cli", "__init__", "viz", "pipeline", "peers", "learn", "backend", "map", "frontend",
           "image", "datasets", "derive", "solvers", "metrics", "reports", "io", "geometry",
           "_quaternion", "camera_file", "depth_registration", "camera", "config", "programs",
           "determinism", "hostmem", "provenance"]

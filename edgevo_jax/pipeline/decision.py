@@ -1,22 +1,23 @@
 """The per-frame decision of the streaming tracker: a pure function of the tracker's state,
 the frame's solve and facts, with the host effects it needs asked for as actions.
 
-State (``TrackerState``): a few small frozen records: the keyframe (``Keyframe``) and the
-earlier ones kept for recovery, the motion history (``Motion``: the last two poses and their
-times, and the device's prediction inputs), the inlier-share history (``shares``), the lost
-clock (``tracked_t``: when a frame was last tracked) and the window's hand-over
-(``begin_frame``, ``refine``: keyframe poses the window refined, taken at fixed frames).
+State (``TrackerState``, ``records``): a few small frozen records: the keyframe
+(``Keyframe``) and the earlier ones kept for recovery, the motion history (``Motion``: the
+last two poses and their times, and the device's prediction inputs), the inlier-share history
+(``shares``), the lost clock (``tracked_t``: when a frame was last tracked) and the window's
+hand-over (``begin_frame``, ``refine``: keyframe poses the window refined, taken at fixed
+frames).
 
 ``decide(state, evidence, config)`` reads the frame's solve and facts (``Evidence``) and
 returns ``Decision(state, result, actions)``. Where it needs something only a host effect can
 give, it returns the unchanged state, no result and that one action: ``Search`` (the
 recovery search from other starts and keyframes), ``Confirm`` (an alignment from a feature
-start), ``Handover`` (all refinements the window has made, waited for) or ``MakeKeyframe``
-(edge selection, the window's hand-over of the new keyframe). The driver
-(``odometry.Odometry``) carries it out, adds the outcome to the evidence and calls again;
-each action is asked for at most once per frame. With every answer in, the result is the
-frame's ``FrameResult`` and the state is the one the next frame starts from. The rules
-(docs/decisions.md), in order:
+start), ``Relocalise`` and ``Revisit`` (the keyframe map: ``relocalise``), ``Handover`` (all
+refinements the window has made, waited for) or ``MakeKeyframe`` (edge selection, the
+window's hand-over of the new keyframe). The driver (``odometry.Odometry``) carries it out,
+adds the outcome to the evidence and calls again; each action is asked for at most once per
+frame. With every answer in, the result is the frame's ``FrameResult`` and the state is the
+one the next frame starts from. The rules (docs/decisions.md), in order:
 
 1. the solve is unusable (``lost_reason``), its inlier share is under ``doubt_share_ratio``
    of the recent frames' highest, or no share has been seen yet: ``Search``;
@@ -25,12 +26,18 @@ frame's ``FrameResult`` and the state is the one the next frame starts from. The
    the keyframe reason (``frontend.keyframes``), WEAK when the residuals are high, the frame
    has no depth, or the solve is doubtful (share under the doubt ratio, it moved past the
    alignment's basin, or it comes more than ``lost_extrapolate_s`` after the last tracked
-   frame) and no feature start confirms it (``Confirm``);
-4. LOST: the pose is the prediction (finite, a rotation) within ``lost_extrapolate_s`` of
+   frame) and no feature start confirms it (``Confirm``), or its keyframe was made at a
+   guess (``Guess``: the chain is not tied to the map);
+4. with the map (``Config.map``), a LOST or doubted frame and one tracked from a guessed
+   keyframe ask the map where it is (``Relocalise``); a verified place makes it OK against
+   that keyframe, and a guessed chain it was tracked in moves into the map's frame with it
+   (``Tie``);
+5. LOST: the pose is the prediction (finite, a rotation) within ``lost_extrapolate_s`` of
    the last tracked frame or with a motion prior, else the last pose, held; the keyframe stays,
-   unless the loss outlasts ``kf_max_interval_s`` (a new keyframe at the guess);
-5. a new keyframe is built on refined poses only (``Handover`` first); when its selection
-   finds too few edges the old keyframe stays.
+   unless the loss outlasts ``kf_max_interval_s`` (a new keyframe at the guess, guessed);
+6. a new keyframe is built on refined poses only (``Handover`` first); with the map, an older
+   keyframe that sees the frame takes over instead where one aligns (``Revisit``); when the
+   selection finds too few edges the old keyframe stays.
 This module runs no JAX: each rule is tested with plain numbers (tests/pipeline/test_decision.py).
 """
 
@@ -38,168 +45,44 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
-from dataclasses import dataclass, field
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
 from ..config import Config
 from ..derive import basin_px
 from ..frontend.keyframes import keyframe_reason
-from ..geometry import inverse_np, orthonormalise_np, predict_np
+from ..geometry import inverse_np, orthonormalise_np
 from ..hostmem import aligned_array
+from .records import (
+    Confirm,
+    Decision,
+    Evidence,
+    FrameFacts,
+    Guess,
+    Handover,
+    Keyframe,
+    MakeKeyframe,
+    Motion,
+    NewKeyframe,
+    Placed,
+    Relocalise,
+    Revisit,
+    Search,
+    Tie,
+    Timing,
+    TrackerState,
+)
 from .results import LOST, OK, WEAK, FrameResult
+
+__all__ = ["SHARE_HISTORY", "Confirm", "Decision", "Evidence", "FrameFacts", "Guess",
+           "Handover", "Keyframe", "MakeKeyframe", "Motion", "NewKeyframe", "Placed",
+           "Relocalise", "Revisit", "Search", "Tie", "Timing", "TrackerState", "begin_frame",
+           "decide", "inlier_share", "lost_reason", "reference_share", "refine",
+           "relative_from_world", "under", "weak_reason"]
 
 #: frames (not lost) whose highest inlier share is the reference for the share ratios
 SHARE_HISTORY = 5
-
-
-@dataclass(frozen=True)
-class Keyframe:
-    """A keyframe: its number (``id``, from 0), timestamp (s), pose T_world_kf (4, 4), selected
-    edges in use and the level-0 inliers of the frames tracked against it. ``edges`` (device
-    arrays), ``frame`` (its ``Frame``) and ``keypoints`` (by kind, detected when recovery first
-    needs them) are the driver's; the decision never reads them."""
-
-    id: int
-    timestamp: float
-    pose: np.ndarray
-    num_edges: int
-    inlier_counts: tuple[int, ...] = ()
-    edges: Any = field(default=None, compare=False, repr=False)
-    frame: Any = field(default=None, compare=False, repr=False)
-    keypoints: dict = field(default_factory=dict, compare=False, repr=False)
-
-
-@dataclass(frozen=True)
-class Motion:
-    """The last (at most two) frames' T_world_cam and timestamps, oldest first, and the
-    device's inputs for the next prediction: A = T_(i-1)_kf, B = T_(i-2)_kf (float32)."""
-
-    poses: tuple[np.ndarray, ...] = ()
-    times: tuple[float, ...] = ()
-    rel: tuple[np.ndarray, np.ndarray] | None = None
-
-    def predict(self, prior: np.ndarray | None = None) -> np.ndarray:
-        """The next T_world_cam: T_w_last @ prior (prior = T_prev_cur), else constant velocity
-        T_w_last (T_w_prev^-1 T_w_last) (``predict_np``); the last pose with one frame."""
-        if prior is not None:
-            return self.poses[-1] @ prior
-        if len(self.poses) < 2:
-            return self.poses[-1]
-        return predict_np(self.poses[1], self.poses[0])
-
-    def push(self, pose: np.ndarray, timestamp: float) -> Motion:
-        """The motion with a frame at ``pose``, ``timestamp`` added (the oldest dropped)."""
-        return Motion((*self.poses, pose)[-2:], (*self.times, timestamp)[-2:], self.rel)
-
-
-@dataclass(frozen=True)
-class TrackerState:
-    """What the tracker carries from frame to frame (module doc). ``previous``: the earlier
-    keyframes recovery tries, oldest first; ``index``: frames concluded so far."""
-
-    keyframe: Keyframe | None = None
-    previous: tuple[Keyframe, ...] = ()
-    motion: Motion = Motion()
-    shares: tuple[float, ...] = ()
-    tracked_t: float | None = None
-    index: int = 0
-    num_keyframes: int = 0
-
-
-class FrameFacts(NamedTuple):
-    """What the decision reads of the frame itself: timestamp (s), its edge count, whether any
-    edge has depth."""
-
-    timestamp: float
-    num_edges: int
-    has_depth: bool
-
-
-class Timing(NamedTuple):
-    """The driver's clocks for the frame's result (ms): preprocessing, solve (dispatch to
-    read-back), the tracker's time on the local window (None with the window off), and from
-    dispatch to the decision."""
-
-    preprocess_ms: float = 0.0
-    solve_ms: float = 0.0
-    map_ms: float | None = None
-    elapsed_ms: float = 0.0
-
-
-# -- actions: host effects the decision asks for -----------------------------------------------
-class Search(NamedTuple):
-    """Align the frame again from other starts and keyframes (``recovery.search``); ``first``:
-    the solve from the prediction, None when unusable; ``reference``: the share to beat."""
-
-    first: Any
-    reference: float | None
-
-
-class Confirm(NamedTuple):
-    """Align the frame to ``keyframe`` from a feature start; does it converge to ``solve``?"""
-
-    keyframe: Keyframe
-    solve: Any
-
-
-class Handover(NamedTuple):
-    """Wait for every refinement handed to the window and give them (``Mapper.due(None)``)."""
-
-
-class MakeKeyframe(NamedTuple):
-    """Make the frame keyframe number ``id`` at ``pose`` (T_world_cam), with the motion of the
-    frames before it: select its edges and hand it to the window. The answer is its
-    ``Keyframe`` (pose refined where the window runs inline) and the selection time, or None
-    when it has too few usable edges."""
-
-    id: int
-    pose: np.ndarray
-    timestamp: float
-    motion: Motion
-
-
-class NewKeyframe(NamedTuple):
-    """The answer to ``MakeKeyframe``: the keyframe made and its selection's time (ms)."""
-
-    keyframe: Keyframe
-    select_ms: float
-
-
-@dataclass(frozen=True)
-class Evidence:
-    """The frame's facts, its solve and what the actions asked for so far gave. ``solve``: a
-    ``frontend.align.TrackResult`` on the host (None for a frame with no keyframe to solve
-    against); ``predicted``: the frame's predicted T_world_cam; ``prior``: its motion prior
-    T_prev_cur, if given. ``searched`` / ``found`` (a ``recovery.Found`` or None),
-    ``confirmed`` (None: not asked), ``handover`` (the window's refinements, ``Mapped``;
-    None: not asked), ``made`` (the ``MakeKeyframe`` answer; ``made_asked``) and
-    ``intrinsics_moved`` (the window's intrinsics were taken in this frame)."""
-
-    facts: FrameFacts
-    solve: Any
-    predicted: np.ndarray
-    prior: np.ndarray | None = None
-    timing: Timing = Timing()
-    searched: bool = False
-    found: Any = None
-    confirmed: bool | None = None
-    handover: tuple | None = None
-    made_asked: bool = False
-    made: NewKeyframe | None = None
-    intrinsics_moved: bool = False
-
-
-class Decision(NamedTuple):
-    """``decide``'s answer (its doc). ``plain``: the state went on as the solve predicted it
-    (no loss, recovery, keyframe or new intrinsics), so that solves of later frames made from
-    the old state (a chunk, a batch) still hold."""
-
-    state: TrackerState
-    result: FrameResult | None
-    actions: tuple
-    plain: bool = False
 
 
 # -- judging a solve ---------------------------------------------------------------------------
@@ -314,23 +197,41 @@ def decide(state: TrackerState, ev: Evidence, config: Config) -> Decision:
     if lost is None and under(res, reference, lost_ratio):
         lost = (f"inlier share {inlier_share(res):.2f} under {lost_ratio:g} x the recent "
                 f"{reference:.2f} from every start")
-    new, weak = state, None
+    weak, doubted = None, kf.guess is not None
     if lost is None:
-        T_c_k = orthonormalise_np(np.asarray(res.T_c_k, np.float64))
-        reason = keyframe_reason(
-            flow=float(res.flow), flow_t=float(res.flow_t), inliers=int(res.inliers),
-            inlier_mean=float(np.mean(kf.inlier_counts)) if kf.inlier_counts else None,
-            dt=facts.timestamp - kf.timestamp, config=config)
         weak = weak_reason(facts.has_depth, res, config)
         if weak is None and not confirmed:
             gap = None if state.tracked_t is None else facts.timestamp - state.tracked_t
             weak = _doubt_reason(res, reference, config, ev.confirmed, gap)
             if weak is _ASK:
                 return Decision(state, None, (Confirm(kf, res),))
-        kf = dataclasses.replace(kf, inlier_counts=(*kf.inlier_counts, int(res.inliers)))
-        # a keyframe the search found (an earlier one) takes over
-        new = dataclasses.replace(_with_keyframe(state, kf), keyframe=kf, tracked_t=facts.timestamp,
-                                  shares=(*state.shares, inlier_share(res))[-SHARE_HISTORY:])
+            doubted = doubted or weak is not None
+        weak = weak or (kf.guess.reason if kf.guess is not None else None)
+    # found again: a lost or doubted frame, or one tracked from a keyframe made at a guess,
+    # asks the map where it is
+    # the map's keyframe it was placed on; its pose in its chain and that chain's guess
+    placed, chain, chain_guess = None, None, None
+    if config.map and facts.num_edges > 0 and (lost is not None or doubted):
+        if not ev.relocalise_asked:
+            if lost is not None:
+                return Decision(state, None, (Relocalise(state.motion.poses[-1]),))
+            guess = kf.pose @ inverse_np(np.asarray(res.T_c_k, np.float64))
+            return Decision(state, None, (Relocalise(
+                guess, inverse_np(state.motion.poses[-1]) @ guess),))
+        if ev.relocalised is not None:
+            if lost is None:
+                chain = kf.pose @ inverse_np(orthonormalise_np(np.asarray(res.T_c_k,
+                                                                          np.float64)))
+            placed, chain_guess = ev.relocalised, kf.guess
+            kf, res, lost, weak = _current(placed.keyframe, facts), placed.result, None, None
+    new = state
+    if lost is None:
+        T_c_k = orthonormalise_np(np.asarray(res.T_c_k, np.float64))
+        reason = keyframe_reason(
+            flow=float(res.flow), flow_t=float(res.flow_t), inliers=int(res.inliers),
+            inlier_mean=float(np.mean(kf.inlier_counts)) if kf.inlier_counts else None,
+            dt=facts.timestamp - kf.current_since, config=config)
+        new = _tracked(state, kf, res, facts, config, over=placed is not None)
     else:  # the prediction, flagged; the keyframe stays (docs/decisions.md), unless the loss
         # outlasts the keyframe interval: the old view may be gone for good
         since = facts.timestamp - (state.tracked_t if state.tracked_t is not None
@@ -354,6 +255,16 @@ def decide(state: TrackerState, ev: Evidence, config: Config) -> Decision:
         pose = orthonormalise_np(pose) if np.all(np.isfinite(pose)) else pose
         if not np.all(np.isfinite(pose)):
             pose = new.motion.poses[-1]
+    # a revisit: an older keyframe of the map that sees the frame takes over from a new one
+    if config.map and reason and lost is None and placed is None and kf.guess is None:
+        if not ev.revisit_asked:
+            return Decision(state, None, (Revisit(pose, _recent(new, config)),))
+        if ev.revisited is not None:
+            placed, chain, reason = ev.revisited, pose, None
+            kf, res = _current(placed.keyframe, facts), placed.result
+            T_c_k = orthonormalise_np(np.asarray(res.T_c_k, np.float64))
+            new = _tracked(refine(state, ev.handover), kf, res, facts, config, over=True)
+            pose = kf.pose @ inverse_np(T_c_k)
     used = new.keyframe.num_edges
     made = None
     if reason:
@@ -362,7 +273,22 @@ def decide(state: TrackerState, ev: Evidence, config: Config) -> Decision:
                                                        new.motion),))
         made = ev.made
     if made is not None:
+        # a keyframe made at a loss's guess, from a doubted frame or in a guessed chain is
+        # guessed: nothing verified its pose
+        guess = kf.guess
+        if config.map and lost is not None:
+            guess = Guess(state.index - 1, made.keyframe.id,
+                          f"made at a guess after {since:.1f} s lost")
+        elif config.map and guess is None and doubted and placed is None and weak:
+            guess = Guess(state.index - 1, made.keyframe.id, "made from a frame not verified")
+        if guess is not None:
+            made = made._replace(keyframe=dataclasses.replace(made.keyframe, guess=guess))
         pose, new = made.keyframe.pose, _install(new, made.keyframe, config)
+    tie = None
+    if placed is not None:  # the motion moves into the map's frame with the frame
+        tie = _tie(chain_guess or state.keyframe.guess, kf.id, pose, chain)
+        new = dataclasses.replace(new, motion=Motion() if chain is None else dataclasses.replace(
+            new.motion, poses=tuple(pose @ inverse_np(chain) @ p for p in new.motion.poses)))
     new = dataclasses.replace(new, motion=new.motion.push(pose, facts.timestamp))
     plain = (lost is None and kf.id == start_id and made is None and res is ev.solve
              and not ev.intrinsics_moved)
@@ -374,8 +300,49 @@ def decide(state: TrackerState, ev: Evidence, config: Config) -> Decision:
     result = _result(ev, pose, LOST if lost else (WEAK if weak else OK), lost or weak,
                      int(res.inliers), None if lost else np.asarray(res.covariance, np.float64),
                      reason if made else None, used, made,
-                     None if lost else inlier_share(res))
-    return Decision(new, result, (), plain)
+                     None if lost else inlier_share(res), placed)
+    return Decision(new, result, (), plain, tie)
+
+
+def _current(kf: Keyframe, facts: FrameFacts) -> Keyframe:
+    """A keyframe of the map made current by a frame at ``facts.timestamp``: its interval
+    and its running inlier average start anew."""
+    return dataclasses.replace(kf, since=facts.timestamp, inlier_counts=())
+
+
+def _tracked(state: TrackerState, kf: Keyframe, res, facts: FrameFacts, config: Config, *,
+             over: bool) -> TrackerState:
+    """The state after a frame tracked against ``kf`` (its inliers counted): a keyframe the
+    search found (an earlier one) takes over; one of the map (``over``) takes over with the
+    old current joining the earlier ones recovery tries."""
+    kf = dataclasses.replace(kf, inlier_counts=(*kf.inlier_counts, int(res.inliers)))
+    shares = (*state.shares, inlier_share(res))[-SHARE_HISTORY:]
+    if over:
+        previous = tuple(k for k in (*state.previous, state.keyframe) if k.id != kf.id)
+        return dataclasses.replace(state, keyframe=kf, tracked_t=facts.timestamp, shares=shares,
+                                   previous=previous[-config.recovery_keyframes:])
+    return dataclasses.replace(_with_keyframe(state, kf), keyframe=kf, tracked_t=facts.timestamp,
+                               shares=shares)
+
+
+def _recent(state: TrackerState, config: Config) -> tuple[int, ...]:
+    """Ids of the keyframes a revisit leaves out: the current one, the earlier ones recovery
+    tries and the window's (the last ``window_size`` made)."""
+    recent = {k.id for k in (state.keyframe, *state.previous)}
+    recent.update(range(max(state.num_keyframes - config.window_size, 0), state.num_keyframes))
+    return tuple(sorted(recent))
+
+
+def _tie(guess: Guess | None, key: int, pose: np.ndarray, chain: np.ndarray | None) -> Tie:
+    """What the driver does for a frame placed at ``pose`` against the map's keyframe ``key``
+    (``Tie``): where the frame came from a chain made at a guess (``guess``), the window
+    starts again, and with its pose in that chain (``chain``) the chain moves into the
+    map's frame."""
+    if guess is None:
+        return Tie(key)
+    if chain is None:
+        return Tie(key, restart=True)
+    return Tie(key, pose @ inverse_np(chain), guess.frame, guess.keyframe, restart=True)
 
 
 _ASK = object()  # _doubt_reason: the confirmation is needed and was not asked yet
@@ -436,7 +403,8 @@ def _first(state: TrackerState, ev: Evidence, config: Config) -> Decision:
 
 
 def _result(ev: Evidence, pose, state: str, reason, inliers: int, cov, kf_reason, used: int,
-            made: NewKeyframe | None, share: float | None) -> FrameResult:
+            made: NewKeyframe | None, share: float | None, placed: Placed | None = None
+            ) -> FrameResult:
     t = ev.timing
     return FrameResult(
         timestamp=ev.facts.timestamp, pose=pose, state=state, reason=reason, inliers=inliers,
@@ -444,4 +412,5 @@ def _result(ev: Evidence, pose, state: str, reason, inliers: int, cov, kf_reason
         select_ms=made.select_ms if made else None,
         mapping_ms=t.map_ms if t.map_ms is not None and (made or t.map_ms > 0.0) else None,
         preprocess_ms=t.preprocess_ms, solve_ms=t.solve_ms,
-        total_ms=t.preprocess_ms + t.elapsed_ms, inlier_share=share)
+        total_ms=t.preprocess_ms + t.elapsed_ms, inlier_share=share,
+        placed=None if placed is None else placed.note)

@@ -22,7 +22,7 @@ from ..derive import solve_knobs, solve_structure
 from ..frontend import selection
 from ..frontend.chunk import track_next_jit
 from ..frontend.depth import depth_points
-from ..frontend.selection import keyframe_edges
+from ..frontend.selection import KeyframeEdges, keyframe_edges
 from ..frontend.shutter import depths_at_colour_time, shutter_rate, unroll_edges
 from ..geometry import inverse_np, log_np
 from ..hostmem import aligned_array, to_host
@@ -35,12 +35,14 @@ from .mapping import Mapped, Mapper
 
 class Made(NamedTuple):
     """A keyframe as ``make_keyframe`` made it (``keyframe.pose`` refined when the window
-    runs inline: ``mapped``), the selection time (ms) and the tracker's time on the window."""
+    runs inline: ``mapped``), the selection time (ms), the tracker's time on the window and
+    its edges on the host (what the keyframe map keeps)."""
 
     keyframe: Keyframe
     select_ms: float
     map_ms: float
     mapped: Mapped | None
+    host_edges: KeyframeEdges
 
 
 class Solver:
@@ -111,7 +113,7 @@ class Solver:
         return to_host(self.dispatch(kf, frame, T_c_k, rate, last_pose))
 
 
-def _aligner(solver: Solver, state: TrackerState, frame: Frame, timestamp: float):
+def aligner(solver: Solver, state: TrackerState, frame: Frame, timestamp: float):
     """``align(kf, frame, T_cur_kf)`` and ``usable(solve)`` for the recovery's solves of a
     frame at ``timestamp``, after the frames of ``state``."""
     last = state.motion.poses[-1] if state.motion.poses else None
@@ -131,7 +133,7 @@ def search(solver: Solver, state: TrackerState, frame: Frame, ask: Search, times
     (the current one, then the earlier ones, newest first) and last poses; with a motion
     prior, the constant-velocity start as well."""
     config = solver.config
-    align, usable = _aligner(solver, state, frame, timestamp)
+    align, usable = aligner(solver, state, frame, timestamp)
     starts = recovery.motion_starts(state.motion.poses, state.motion.times, timestamp)
     if prior is not None:  # the first solve came from the prior: also try this
         starts = [*starts, state.motion.predict()]
@@ -146,7 +148,7 @@ def search(solver: Solver, state: TrackerState, frame: Frame, ask: Search, times
 def confirm(solver: Solver, state: TrackerState, frame: Frame, ask: Confirm,
             timestamp: float) -> bool:
     """Whether a feature start converges to the solve ``ask`` names (``recovery.confirm``)."""
-    align, usable = _aligner(solver, state, frame, timestamp)
+    align, usable = aligner(solver, state, frame, timestamp)
     return recovery.confirm(frame, ask.keyframe, ask.solve, align=align, usable=usable,
                             intrinsics=solver.intrinsics, config=solver.config)
 
@@ -197,7 +199,7 @@ def make_keyframe(solver: Solver, mapper: Mapper | None, frame: Frame, ask: Make
         edges = edges._replace(**dict(zip(("depth_pts", "depth_normals"), points.result(),
                                           strict=True)))
     kf = dataclasses.replace(kf, edges=jax.device_put(edges))
-    return Made(kf, (t1 - t0) * 1e3, map_ms, mapped)
+    return Made(kf, (t1 - t0) * 1e3, map_ms, mapped, edges)
 
 
 def warm_up(solver: Solver, mapper: Mapper | None, kf: Keyframe, frame: Frame) -> None:

@@ -22,7 +22,7 @@ from .run import initial_pose
 
 __all__ = ["DIVERGED_ROT_DEG", "DIVERGED_TRANS_M", "GT_MAX_DIFF_S", "WARMUP_FRAMES",
            "accuracy", "diverged_frames", "finite_stats", "frame_stats", "groundtruth_at",
-           "load_clip", "motion_errors", "run_peer"]
+           "load_clip", "motion_errors", "pose_errors", "run_peer"]
 
 #: frames left out of warm statistics: frame 0 sets up, frame 1 is the first pair (compiles)
 WARMUP_FRAMES = 2
@@ -162,3 +162,31 @@ def diverged_frames(poses: np.ndarray, states: Sequence[str], gt_poses: np.ndarr
         if math.isfinite(t) and math.isfinite(r) and (t > trans_m or r > rot_deg):
             out.append(i)
     return out
+
+
+def pose_errors(poses: np.ndarray, gt_poses: np.ndarray, fit: Sequence[int]
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Each frame's pose error against the ground truth once the estimate is aligned on the
+    frames ``fit`` (indices): the rigid A = (R, t) with R the rotation nearest the sum of
+    G_i R_i^T (its polar factor) and t the mean of g_i - R p_i over the fit frames with
+    ground truth, so that orientations count as positions do; returns, per frame, |trans(E)|
+    (m) and angle(E) (degrees) of E = G^-1 A P (NaN where the ground truth is). ValueError
+    when no fit frame has ground truth."""
+    P = np.asarray(poses, np.float64)
+    G = np.asarray(gt_poses, np.float64)
+    if P.shape != G.shape or P.ndim != 3 or P.shape[1:] != (4, 4):
+        raise ValueError(f"poses {P.shape} and gt_poses {G.shape} must both be (N, 4, 4)")
+    fit = [i for i in fit if np.all(np.isfinite(G[i]))]
+    if not fit:
+        raise ValueError("no frame to align on has ground truth")
+    M = sum(G[i, :3, :3] @ P[i, :3, :3].T for i in fit)
+    u, _, vt = np.linalg.svd(M)
+    R = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    A = np.eye(4)
+    A[:3, :3] = R
+    A[:3, 3] = np.mean([G[i, :3, 3] - R @ P[i, :3, 3] for i in fit], axis=0)
+    E = inverse_np(np.where(np.isfinite(G), G, np.eye(4))) @ A @ P
+    bad = ~np.all(np.isfinite(G), axis=(1, 2))
+    trans = np.where(bad, np.nan, np.linalg.norm(E[:, :3, 3], axis=-1))
+    rot = np.degrees(np.asarray(rotation_angle_np(E), np.float64).reshape(-1))
+    return trans, np.where(bad, np.nan, rot)

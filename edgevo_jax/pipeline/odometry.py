@@ -27,10 +27,12 @@ from ..programs import enable_cache, release_compiled
 from . import decision
 from .effects import Solver, confirm, make_keyframe, search, warm_up
 from .inputs import check_frame, increasing, rigid_transform
+from .ledger import Ledger
 from .mapping import Mapped, Mapper
-from .results import LOST, OK, WEAK, FrameResult, Refinement
+from .relocalise import Places
+from .results import LOST, OK, WEAK, Correction, FrameResult, Refinement
 
-__all__ = ["LOST", "OK", "WEAK", "FrameResult", "Odometry"]
+__all__ = ["LOST", "OK", "WEAK", "Correction", "FrameResult", "Odometry"]
 
 
 @dataclass(frozen=True)
@@ -66,7 +68,11 @@ class Odometry:
     ``with`` block) stops it. Making one switches on the on-disk program cache and the
     CLI's arithmetic (``programs.enable_cache``; ``EDGEVO_CACHE_DIR=""``: no cache).
     ``state`` is the tracker's state (``decision.TrackerState``), ``refinements`` the window's
-    keyframe poses as taken.
+    keyframe poses as taken. With ``Config.map`` every keyframe joins a map
+    (``relocalise.Places``; ``keyframe_map``) that finds lost frames again; where it ties
+    a chain of keyframes made at a guess back to it, the frames tracked in that chain move
+    into the map's frame: ``corrections`` lists each such move (``Correction``: which earlier
+    results' poses to left-multiply by which transform), in order.
 
     A motion prior (an IMU's, wheel odometry's) goes with a frame: ``track(..., prior=T)``,
     ``track_frame`` and ``submit`` take T = T_prev_cur (4, 4, metres): the frame's camera
@@ -100,6 +106,11 @@ class Odometry:
         self.refinements: list = []  # the window's keyframe poses, as taken (``Refinement``)
         self.warm_up_ms: float | None = None  # time of the warm-up (at the first keyframe)
         self._mapper: Mapper | None = None  # made with the first keyframe (image size)
+        self._places: Places | None = None  # the keyframe map, made with the first keyframe
+        self._ledger = Ledger() if config.map else None  # frames the map may still move
+        self._made = None  # the keyframe this frame made (``effects.Made``), for the map
+        #: earlier poses moved into the map's frame (``Correction``), in order
+        self.corrections: list[Correction] = []
         self._handed: dict[int, tuple[float, np.ndarray]] = {}  # in the window: time, pose
         self._map_ms, self._moved = 0.0, False  # this frame's time on the window; new intrinsics
         self._last_t: float | None = None
@@ -252,6 +263,15 @@ class Odometry:
         return None if self._mapper is None else self._mapper.local_map
 
     @property
+    def keyframe_map(self):
+        """The keyframe map (``map.KeyframeMap``) with every keyframe made so far, None before
+        the first keyframe or with ``Config.map`` off."""
+        if self._places is None:
+            return None
+        self._places.settle()
+        return self._places.map
+
+    @property
     def mapping_worker_ms(self) -> list[float]:
         """The local window's time per keyframe taken so far (ms, in order)."""
         return [] if self._mapper is None else list(self._mapper.worker_ms)
@@ -296,6 +316,7 @@ class Odometry:
             d = decision.decide(self.state, ev, self.config)
             if not d.actions:
                 self.state = d.state
+                self._placed(d, frame)
                 return d.result, d.plain
             ev = self._act(d.actions[0], ev, pending)
 
@@ -311,13 +332,26 @@ class Odometry:
                                                              pending.timestamp))
         if isinstance(action, decision.Handover):
             return dataclasses.replace(ev, handover=tuple(self._due(None)))
+        if isinstance(action, decision.Relocalise):
+            return dataclasses.replace(ev, relocalise_asked=True, relocalised=None
+                                       if self._places is None else self._places.relocalise(
+                                           self._solver, state, frame, action,
+                                           pending.timestamp))
+        if isinstance(action, decision.Revisit):
+            return dataclasses.replace(ev, revisit_asked=True, revisited=None
+                                       if self._places is None else self._places.revisit(
+                                           self._solver, state, frame, action,
+                                           pending.timestamp))
         assert isinstance(action, decision.MakeKeyframe), action
         if self.config.mapping and self._mapper is None:  # the window, made with the first keyframe
             self._mapper = Mapper(self.config, self.intrinsics, frame.shape,
                                   rolling_shutter=self.readout_s > 0)
             if self.warm_up_ms is None:  # its programs compile on its worker from now
                 self._mapper.warm_up()
-        made = make_keyframe(self._solver, self._mapper, frame, action, state.index)
+        if self.config.map and self._places is None:
+            self._places = Places(self.config, self.intrinsics, frame.shape)
+        made = self._made = make_keyframe(self._solver, self._mapper, frame, action,
+                                          state.index)
         if made is None:
             return dataclasses.replace(ev, made_asked=True)
         self._map_ms += made.map_ms
@@ -331,6 +365,33 @@ class Odometry:
             self.warm_up_ms = (time.perf_counter() - t0) * 1e3
         return dataclasses.replace(ev, made_asked=True,
                                    made=decision.NewKeyframe(made.keyframe, made.select_ms))
+
+    def _placed(self, d: decision.Decision, frame: Frame) -> None:
+        """The map's part of a concluded frame: the keyframe it made joins the map, its share
+        counts for its keyframe, the earlier frames it settles may move (``corrections``:
+        a guessed chain it ties to the map, LOST frames filled in; ``ledger``), and a
+        ``Tie`` out of a guessed chain starts the window again (its keyframes are in the
+        chain's frame)."""
+        made, self._made = self._made, None
+        if self._ledger is None:
+            return
+        kf, result, tie = self.state.keyframe, d.result, d.tie
+        settled = tie is not None or (result.state == OK and kf is not None
+                                      and kf.guess is None)
+        moved = self._ledger.record(self.state.index - 1, result, settled=settled, tie=tie)
+        if moved is not None:
+            self.corrections.append(moved)
+        if self._places is None:
+            return
+        if made is not None and result.keyframe is not None:
+            self._places.add(kf, made.host_edges, frame, self.intrinsics)
+        if result.state == OK and result.inlier_share is not None:
+            self._places.note_share(kf.id, result.inlier_share)
+        if tie is not None:
+            self._places.tie(tie)
+            if tie.restart and self._mapper is not None:
+                self._mapper.close()
+                self._mapper, self._handed = None, {}
 
     def _due(self, frame_index: int | None) -> list[Mapped]:
         """The window's refinements due at ``frame_index`` (None: all handed over), waited
@@ -351,6 +412,8 @@ class Odometry:
         as handed to the window, and refined) and take the window's intrinsics with it."""
         timestamp, before = self._handed.pop(m.key)
         self.refinements.append(Refinement(timestamp, index, before, m.pose))
+        if self._places is not None:
+            self._places.set_pose(m.key, m.pose)
         if self.config.mapping_intrinsics and tuple(m.intrinsics) != tuple(self.intrinsics):
             self._solver.intrinsics = m.intrinsics
             self._moved = True  # solves made with the old ones are stale

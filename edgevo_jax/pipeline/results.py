@@ -21,8 +21,10 @@ class FrameResult:
     keyframe edges it was tracked with, the edge selection and local mapping times when it
     became a keyframe (mapping None when off), and host timings in ms (preprocess; solve =
     from dispatch to read-back; total); ``inlier_share``: the level-0 inliers per keyframe
-    edge in view (None for the first frame and LOST ones). A keyframe's pose is the window's
-    refined one."""
+    edge in view (None for the first frame and LOST ones); ``placed``: how the keyframe map
+    placed the frame, when it did (found again after a loss or a guess, or an older keyframe
+    taking over on a revisit; None otherwise). A keyframe's pose is the window's refined
+    one."""
 
     timestamp: float
     pose: np.ndarray
@@ -38,6 +40,20 @@ class FrameResult:
     solve_ms: float
     total_ms: float
     inlier_share: float | None = None
+    placed: str | None = None
+
+
+@dataclass(frozen=True)
+class Correction:
+    """Earlier poses moved when the keyframe map placed a frame: frames ``first`` to
+    ``last`` (indices, inclusive) take ``poses`` ((last - first + 1, 4, 4) T_world_cam): a
+    chain of keyframes made at a guess moved into the map's frame, and LOST frames filled
+    in between the tracked frames on either side. The frame after ``last`` is the one the map
+    placed; states and reasons stay as they were reported."""
+
+    first: int
+    last: int
+    poses: np.ndarray
 
 
 @dataclass(frozen=True)

@@ -40,7 +40,7 @@ from ..learn.params import Params
 from ..metrics import ate, rpe_per_second
 from ..programs import enable_cache
 from .odometry import Odometry
-from .results import LOST, OK, WEAK, FrameResult, FrameResults
+from .results import LOST, OK, WEAK, Correction, FrameResult, FrameResults
 
 
 @dataclass
@@ -50,7 +50,10 @@ class RunResult(FrameResults):
     decode times (ms); the start-up (s): from the start (``run_sequence``'s ``started``) to
     the first pose, which includes ``warm_up_s``, the tracker's compiling or loading of every
     program the run needs (``effects.warm_up``); the local window's time per keyframe on
-    its worker (ms)."""
+    its worker (ms); ``corrections``: earlier poses moved into the keyframe map's frame
+    (``results.Correction``, applied to ``results`` and the trajectory file at the end of
+    the run); the map's keyframes, bytes and the first keyframe it refused at its cap (None
+    each with ``Config.map`` off; ``map_full_at`` None below the cap)."""
 
     results: list[FrameResult] = field(default_factory=list)
     frame_ms: list[float] = field(default_factory=list)
@@ -61,6 +64,10 @@ class RunResult(FrameResults):
     mapping_worker_ms: list[float] = field(default_factory=list)
     stopped_at: int | None = None  # index of the first frame not processed, if interrupted
     config: Config | None = None
+    corrections: list[Correction] = field(default_factory=list)
+    map_keyframes: int | None = None
+    map_bytes: int | None = None
+    map_full_at: int | None = None
 
     def summary_fields(self) -> dict:
         """Timing statistics and the per-frame record (``per_frame_record``) for
@@ -88,6 +95,14 @@ class RunResult(FrameResults):
         }
         if self.stopped_at is not None:
             out["stopped_at_frame"] = self.stopped_at
+        if self.map_keyframes is not None:
+            placed = [r.placed for r in self.results if r.placed]
+            out["map"] = {"keyframes": self.map_keyframes, "megabytes": self.map_bytes / 1e6,
+                          "full_at_keyframe": self.map_full_at,
+                          "found_again": sum(p.startswith("found again") for p in placed),
+                          "revisits": sum(p.startswith("revisit") for p in placed),
+                          "frames_moved": len({i for c in self.corrections
+                                               for i in range(c.first, c.last + 1)})}
         out["per_frame"] = [per_frame_record(r) for r in self.results]
         return out
 
@@ -203,9 +218,24 @@ def run_sequence(
         odo.close()
         run.num_keyframes = odo.num_keyframes
         run.mapping_worker_ms = odo.mapping_worker_ms
+        _take_map(run, odo)
     if writer is not None:
+        if run.corrections:
+            writer.rewrite(run.timestamps, matrices_to_poses7(run.poses))
         writer.close()
     return run
+
+
+def _take_map(run: RunResult, odo: Odometry) -> None:
+    """The map's statistics and its corrections, applied to the run's results."""
+    kmap = odo.keyframe_map
+    if kmap is not None:
+        run.map_keyframes, run.map_bytes, run.map_full_at = len(kmap), kmap.nbytes, kmap.full_at
+    run.corrections = list(odo.corrections)
+    for c in run.corrections:
+        for i, pose in zip(range(c.first, min(c.last + 1, len(run.results))), c.poses,
+                           strict=False):
+            run.results[i] = dataclasses.replace(run.results[i], pose=pose)
 
 
 #: (image size, configuration, learnt params or not) whose compiling this process announced

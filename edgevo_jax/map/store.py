@@ -1,0 +1,314 @@
+"""The keyframe map: every keyframe the tracker made, with what aligning a frame to it again
+needs, its appearance code, and which keyframes see the same scene.
+
+A ``MapKeyframe`` keeps its pose T_world_kf, its selected edges with their inverse depths
+and the depth residual's points (``KeyframeEdges`` on the host: what the edge alignment of a
+later frame reads; the frame's own distance fields are the other half), its ORB keypoints
+lifted with the keyframe's depth (``features.Landmarks``: a feature start without the
+keyframe's images) and its fern code (``recognition``). No image is kept.
+
+``KeyframeMap`` answers two questions: which keyframes look like a frame
+(``recognise``: place recognition by fern codes) and which would see a camera at a pose
+(``overlapping``: the share of a keyframe's edges that project into the image, its
+*predicted overlap*). Covisibility (``covisible``) is the same overlap between keyframes,
+taken both ways when a keyframe joins. A keyframe made at a guess (after a loss) joins
+unanchored: no query returns it until ``anchor`` ties it to the map.
+
+Memory: ``nbytes``; ``max_keyframes`` caps it, and a keyframe refused at the cap is said
+(``full_at`` and a ``MapFullWarning``). Host side, numpy; not thread-safe (the tracker's
+thread owns it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from ..camera import Intrinsics
+from ..frontend.features import Keypoints, Landmarks, detect, landmarks
+from ..frontend.selection import KeyframeEdges
+from ..geometry import inverse_np
+from .recognition import NUM_FERNS, Ferns, encode, similarity
+
+__all__ = ["Appearance", "Candidate", "KeyframeMap", "MapFullWarning", "MapKeyframe", "edge_points",
+           "describe", "predicted_overlap"]
+
+#: a keyframe viewed from an optical axis more than this far from its own (degrees) is not
+#: projected for its overlap: past the field of view (~60 degrees across) little is shared
+MAX_AXIS_DEG = 60.0
+#: nor one whose camera is farther from the query's than this many times the median depth
+#: of its edges: its scene would be seen across more than twice its own distance
+MAX_DISTANCE_DEPTHS = 2.0
+
+
+class MapFullWarning(UserWarning):
+    """The map reached ``Config.map_max_keyframes``: later keyframes are not kept in it."""
+
+
+@dataclass(frozen=True)
+class MapKeyframe:
+    """One keyframe of the map (module doc): ``id`` (the tracker's keyframe number),
+    ``timestamp`` (s), ``pose`` T_world_kf (4, 4) float64, ``edges`` (host arrays),
+    ``points`` (3, N) float32: its valid edges' points in its camera (m), ``landmarks`` (None
+    without a gray image and depth), ``code`` (NUM_FERNS,) uint8, ``anchored`` (False: made at
+    a guess, not tied to the map yet) and ``share``: the highest inlier share of a frame
+    tracked against it (0: none yet), the standard a relocalised frame is held to."""
+
+    id: int
+    timestamp: float
+    pose: np.ndarray
+    edges: KeyframeEdges
+    points: np.ndarray
+    landmarks: Landmarks | None
+    code: np.ndarray
+    anchored: bool = True
+    share: float = 0.0
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by its arrays."""
+        arrays = [a for a in self.edges if a is not None]
+        return int(sum(np.asarray(a).nbytes for a in arrays) + self.points.nbytes
+                   + self.code.nbytes + self.pose.nbytes
+                   + (self.landmarks.nbytes if self.landmarks is not None else 0))
+
+
+class Appearance(NamedTuple):
+    """What a frame shows place recognition and the feature start: its ORB keypoints (None
+    without a gray image), those lifted with its depth (None without depth) and its fern
+    code."""
+
+    keypoints: Keypoints | None
+    landmarks: Landmarks | None
+    code: np.ndarray
+
+
+def describe(ferns: Ferns, gray: np.ndarray | None, depth: np.ndarray | None,
+             intr: Intrinsics, *, min_depth: float, max_depth: float) -> Appearance:
+    """A frame's ``Appearance`` (ORB: ``features.detect``; ``features.landmarks``; the fern
+    code, from the depth alone without a gray image)."""
+    if gray is None:
+        h, w = depth.shape if depth is not None else (1, 1)
+        return Appearance(None, None, encode(ferns, np.zeros((h, w), np.uint8), depth))
+    kps = detect(gray, kind="orb")
+    lm = None if depth is None else landmarks(kps, depth, intr, min_depth=min_depth,
+                                              max_depth=max_depth)
+    return Appearance(kps, lm, encode(ferns, gray, depth))
+
+
+class Candidate(NamedTuple):
+    """A keyframe a query returned and its score (fern similarity or predicted overlap)."""
+
+    id: int
+    score: float
+
+
+def edge_points(edges: KeyframeEdges, intr: Intrinsics) -> np.ndarray:
+    """(3, N) float32: the valid edges' points in the keyframe's camera (m), from their pixels
+    and inverse depths."""
+    valid = np.asarray(edges.valid, bool)
+    uv = np.asarray(edges.uv, np.float64)[:, valid]
+    z = 1.0 / np.asarray(edges.rho, np.float64)[valid]
+    fx, fy, cx, cy = (float(v) for v in intr)
+    return np.stack([(uv[0] - cx) / fx * z, (uv[1] - cy) / fy * z, z]).astype(np.float32)
+
+
+def predicted_overlap(points: np.ndarray, T_c_k: np.ndarray, intr: Intrinsics,
+                      shape: tuple[int, int], *, min_depth: float = 0.1) -> float:
+    """The share (0-1) of a keyframe's edge points (3, N) in its camera that a camera at
+    T_cur_kf (4, 4) sees: in front of it (depth over ``min_depth``) and inside its image
+    (H, W). 0 for a keyframe without points."""
+    if points.shape[1] == 0:
+        return 0.0
+    T = np.asarray(T_c_k, np.float64)
+    p = T[:3, :3] @ points.astype(np.float64) + T[:3, 3:]
+    fx, fy, cx, cy = (float(v) for v in intr)
+    z = p[2]
+    front = z > min_depth
+    zs = np.where(front, z, 1.0)
+    u, v = fx * p[0] / zs + cx, fy * p[1] / zs + cy
+    h, w = shape
+    inside = front & (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)
+    return float(np.count_nonzero(inside)) / points.shape[1]
+
+
+class KeyframeMap:
+    """Every keyframe of a run, for a camera with ``intrinsics`` and frames of ``shape``
+    (H, W); at most ``max_keyframes`` of them (module doc)."""
+
+    def __init__(self, intrinsics: Intrinsics, shape: tuple[int, int], *,
+                 max_keyframes: int) -> None:
+        if max_keyframes < 1:
+            raise ValueError(f"max_keyframes must be positive, got {max_keyframes}")
+        self.intrinsics, self.shape, self.max_keyframes = intrinsics, tuple(shape), max_keyframes
+        self.full_at: int | None = None  #: the first keyframe refused at the cap
+        self._entries: dict[int, MapKeyframe] = {}
+        self._covisible: dict[int, dict[int, float]] = {}
+        self._rows: dict[int, int] = {}  # id -> row of the arrays below
+        self._row_ids: list[int] = []  # row -> id
+        cap = 64
+        self._codes = np.zeros((cap, NUM_FERNS), np.uint8)
+        self._centres = np.zeros((cap, 3))
+        self._axes = np.zeros((cap, 3))
+        self._depths = np.zeros(cap)  # median depth of each keyframe's edges
+        self._live = np.zeros(cap, bool)  # anchored: what queries may return
+
+    # -- contents ------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def __contains__(self, key: int) -> bool:
+        return key in self._entries
+
+    def __getitem__(self, key: int) -> MapKeyframe:
+        return self._entries[key]
+
+    @property
+    def ids(self) -> list[int]:
+        """The keyframes' ids, in the order they joined."""
+        return list(self._entries)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the keyframes and the query arrays."""
+        arrays = (self._codes, self._centres, self._axes, self._depths, self._live)
+        return int(sum(e.nbytes for e in self._entries.values())
+                   + sum(a.nbytes for a in arrays))
+
+    def add(self, kf: MapKeyframe) -> bool:
+        """Keep ``kf`` (its covisibility with the keyframes that overlap it is taken now).
+        False, and a ``MapFullWarning`` the first time, when the map holds ``max_keyframes``
+        already. ValueError for an id already kept or a code of another length."""
+        if kf.id in self._entries:
+            raise ValueError(f"keyframe {kf.id} is in the map already")
+        if kf.code.shape != (NUM_FERNS,):
+            raise ValueError(f"a code has {NUM_FERNS} ferns, got shape {kf.code.shape}")
+        if len(self._entries) >= self.max_keyframes:
+            if self.full_at is None:
+                self.full_at = kf.id
+                warnings.warn(f"the keyframe map holds {self.max_keyframes} keyframes "
+                              f"(Config.map_max_keyframes): keyframe {kf.id} and later ones "
+                              "are not kept in it", MapFullWarning, stacklevel=2)
+            return False
+        row = len(self._rows)
+        if row == len(self._live):
+            self._grow()
+        self._rows[kf.id] = row
+        self._row_ids.append(kf.id)
+        self._entries[kf.id] = kf
+        self._codes[row] = kf.code
+        self._place(kf)
+        self._covisible[kf.id] = {}
+        if kf.anchored:
+            self._link(kf)
+        return True
+
+    def set_pose(self, key: int, pose: np.ndarray) -> None:
+        """A kept keyframe's new pose T_world_kf (the window refined it); others are
+        ignored."""
+        if key in self._entries:
+            self._entries[key] = dataclasses.replace(self._entries[key],
+                                                     pose=np.asarray(pose, np.float64))
+            self._place(self._entries[key])
+
+    def note_share(self, key: int, share: float) -> None:
+        """A frame was tracked against keyframe ``key`` with this inlier share."""
+        kf = self._entries.get(key)
+        if kf is not None and share > kf.share:
+            self._entries[key] = dataclasses.replace(kf, share=float(share))
+
+    def anchor(self, keys: Iterable[int], correction: np.ndarray) -> None:
+        """Tie keyframes made at a guess to the map: each of ``keys`` kept takes the pose
+        ``correction @ pose`` (T_world_new_world_guess (4, 4)) and is anchored."""
+        C = np.asarray(correction, np.float64)
+        for key in keys:
+            kf = self._entries.get(key)
+            if kf is None:
+                continue
+            self._entries[key] = dataclasses.replace(kf, pose=C @ kf.pose, anchored=True)
+            self._place(self._entries[key])
+            if not kf.anchored:
+                self._link(self._entries[key])
+
+    def covisible(self, key: int) -> dict[int, float]:
+        """Keyframes that see the scene of keyframe ``key``: id -> covisibility (0-1, the
+        smaller of the two predicted overlaps when the later one joined)."""
+        return dict(self._covisible.get(key, {}))
+
+    # -- queries ---------------------------------------------------------------------------
+    def recognise(self, code: np.ndarray, *, k: int, exclude: Iterable[int] = ()
+                  ) -> list[Candidate]:
+        """The ``k`` anchored keyframes (not in ``exclude``) whose codes are most like
+        ``code``, most alike first (ties: the older first); empty when there is none."""
+        rows = self._live_rows(exclude)
+        if not rows.size:
+            return []
+        score = similarity(self._codes[rows], np.asarray(code, np.uint8))
+        order = np.argsort(-score, kind="stable")[:k]
+        return [Candidate(self._row_ids[rows[i]], float(score[i])) for i in order]
+
+    def overlapping(self, T_w_c: np.ndarray, *, k: int, min_overlap: float,
+                    exclude: Iterable[int] = ()) -> list[Candidate]:
+        """The ``k`` anchored keyframes (not in ``exclude``) that a camera at T_world_cam
+        would see best, by predicted overlap (at least ``min_overlap``), best first."""
+        T = np.asarray(T_w_c, np.float64)
+        out = []
+        for key in self._near(T, self._live_rows(exclude)):
+            kf = self._entries[key]
+            share = predicted_overlap(kf.points, inverse_np(T) @ kf.pose, self.intrinsics,
+                                      self.shape)
+            if share >= min_overlap:
+                out.append(Candidate(key, share))
+        return sorted(out, key=lambda c: -c.score)[:k]
+
+    # -- internals -------------------------------------------------------------------------
+    def _grow(self) -> None:
+        def bigger(a: np.ndarray) -> np.ndarray:
+            out = np.zeros((2 * len(a), *a.shape[1:]), a.dtype)
+            out[:len(a)] = a
+            return out
+        self._codes, self._centres, self._axes, self._depths, self._live = (
+            bigger(a) for a in (self._codes, self._centres, self._axes, self._depths,
+                                self._live))
+
+    def _place(self, kf: MapKeyframe) -> None:
+        row = self._rows[kf.id]
+        self._centres[row] = kf.pose[:3, 3]
+        self._axes[row] = kf.pose[:3, 2]
+        self._depths[row] = float(np.median(kf.points[2])) if kf.points.shape[1] else 0.0
+        self._live[row] = kf.anchored
+
+    def _live_rows(self, exclude: Iterable[int]) -> np.ndarray:
+        live = self._live[:len(self._rows)].copy()
+        for key in exclude:
+            if key in self._rows:
+                live[self._rows[key]] = False
+        return np.flatnonzero(live)
+
+    def _near(self, T_w_c: np.ndarray, rows: np.ndarray) -> list[int]:
+        """Ids of the keyframes of ``rows`` whose view could overlap a camera at T_w_c
+        (``MAX_AXIS_DEG``, ``MAX_DISTANCE_DEPTHS``), in the order they joined."""
+        if not rows.size:
+            return []
+        cos = self._axes[rows] @ T_w_c[:3, 2]
+        dist = np.linalg.norm(self._centres[rows] - T_w_c[:3, 3], axis=1)
+        near = (cos >= np.cos(np.radians(MAX_AXIS_DEG))) \
+            & (dist <= MAX_DISTANCE_DEPTHS * self._depths[rows])
+        return [self._row_ids[r] for r in rows[near]]
+
+    def _link(self, kf: MapKeyframe) -> None:
+        """Covisibility of an anchored keyframe with the anchored ones near it."""
+        for key in self._near(kf.pose, self._live_rows([kf.id])):
+            other = self._entries[key]
+            rel = inverse_np(other.pose) @ kf.pose  # T_other_kf
+            weight = min(predicted_overlap(kf.points, rel, self.intrinsics, self.shape),
+                         predicted_overlap(other.points, inverse_np(rel), self.intrinsics,
+                                           self.shape))
+            if weight > 0:
+                self._covisible[kf.id][key] = weight
+                self._covisible[key][kf.id] = weight

@@ -1,0 +1,237 @@
+"""The keyframe map in the tracker's hands (``Places``): keyframes join it as they are made,
+and it answers the decision's ``Relocalise`` (found again) and ``Revisit`` (an older keyframe
+takes over), and carries out a ``Tie`` (a guessed chain moved into the map's frame).
+
+Found again (``relocalise``): the frame's fern code picks the ``Config.map_candidates``
+anchored keyframes that look most like it (``map.recognition``), and the keyframe a camera
+at the guessed pose would see best joins them (predicted overlap); each in turn gives a
+start from its ORB landmarks matched to the frame's keypoints (EPnP in RANSAC), the edge
+alignment refines it, and the place is accepted only when the result is verified by more
+than the distance field: the solve stays within the alignment's basin of the feature pose
+(two routes, one without the distance fields, agree), and its inlier share is at least
+``doubt_share_ratio`` of the best share a frame ever had against that keyframe (the standard
+an OK frame meets against its recent frames). The first candidate verified wins; none:
+the query found nothing, and says so (None).
+
+Revisit (``revisit``): the anchored keyframes outside the window that would see the frame at
+its tracked pose (predicted overlap at least ``Config.map_overlap``), best first; the first
+whose alignment from that pose is usable, stays in the basin and keeps the recent inlier
+share takes over from the new keyframe the frame asked for.
+
+The keyframes' appearance (ORB keypoints and the fern code) is described on the
+preprocessing's idle worker while the tracker goes on; it joins the map, in order, before
+the next query or keyframe (``settle``): when it is computed never changes what it holds.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import Future
+
+import jax
+import numpy as np
+
+from ..camera import Intrinsics
+from ..config import Config
+from ..derive import basin_px
+from ..frontend.features import detect, landmark_pose, refine_pose
+from ..frontend.selection import KeyframeEdges
+from ..geometry import inverse_np, rotation_angle_np
+from ..image.preprocess import Frame, beside
+from ..map import KeyframeMap, MapKeyframe, describe, edge_points, encode, make_ferns
+from .decision import (
+    Keyframe,
+    Placed,
+    Relocalise,
+    Revisit,
+    Tie,
+    TrackerState,
+    inlier_share,
+    reference_share,
+    under,
+)
+from .effects import Solver, aligner
+from .recovery import AGREE_DEG, AGREE_M
+
+#: ORB keypoints of a frame being relocalised (a keyframe keeps 1000): twice as many match a
+#: keyframe's across a wide baseline (teddy 17 degrees apart: 30 ratio-test matches against
+#: none with 1000); only relocalising frames pay the ~3 ms more
+QUERY_FEATURES = 2000
+#: Lowe's ratio for the matches PnP starts from: looser than the recovery's 0.8 (more
+#: matches across a wide baseline; RANSAC, guided matching and the edge solve's
+#: verification after it keep a wrong pose out)
+QUERY_RATIO = 0.9
+
+
+#: a second keyframe confirms a relocalised pose when it places the frame within this much of
+#: the first (m, degrees): twice the agreement of two solves against one keyframe
+#: (``recovery.AGREE_M``, ``AGREE_DEG``), for the two keyframes' own pose errors
+SECOND_M, SECOND_DEG = 2 * AGREE_M, 2 * AGREE_DEG
+
+
+class Places:
+    """The map of one tracker (module doc), for frames of ``shape`` (H, W) through
+    ``intrinsics``."""
+
+    def __init__(self, config: Config, intrinsics: Intrinsics, shape: tuple[int, int]) -> None:
+        self.config = config
+        self.map = KeyframeMap(intrinsics, shape, max_keyframes=config.map_max_keyframes)
+        self.ferns = make_ferns()
+        # keyframes whose appearance is being described: id -> (record, edges, future)
+        self._pending: dict[int, tuple[Keyframe, KeyframeEdges, Future]] = {}
+        self._shares: dict[int, float] = {}  # best shares of pending keyframes
+
+    # -- what the tracker tells it --------------------------------------------------------
+    def add(self, kf: Keyframe, edges: KeyframeEdges, frame: Frame,
+            intrinsics: Intrinsics) -> None:
+        """A keyframe was made: ``kf`` (anchored unless ``kf.guess``) with its host edges,
+        described from ``frame`` on the preprocessing's worker."""
+        self.settle()
+        config = self.config
+        future = beside(describe, self.ferns, frame.gray, frame.depth, intrinsics,
+                        min_depth=config.min_depth, max_depth=config.max_depth)
+        self._pending[kf.id] = (kf, edges, future)
+
+    def set_pose(self, key: int, pose: np.ndarray) -> None:
+        """Keyframe ``key`` has a new pose T_world_kf (the window refined it)."""
+        if key in self._pending:
+            kf, edges, future = self._pending[key]
+            self._pending[key] = (_moved(kf, pose), edges, future)
+        else:
+            self.map.set_pose(key, pose)
+
+    def note_share(self, key: int, share: float) -> None:
+        """A frame was tracked against keyframe ``key`` with this inlier share."""
+        if key in self._pending:
+            self._shares[key] = max(self._shares.get(key, 0.0), share)
+        else:
+            self.map.note_share(key, share)
+
+    def tie(self, tie: Tie) -> None:
+        """Carry out the map's part of a ``Tie``: the guessed chain's keyframes take the
+        correction and are anchored."""
+        if tie.correction is None or tie.guessed is None:
+            return
+        self.settle()
+        keys = [k for k in self.map.ids if k >= tie.guessed and not self.map[k].anchored]
+        self.map.anchor(keys, tie.correction)
+
+    # -- what the decision asks ---------------------------------------------------------------
+    def relocalise(self, solver: Solver, state: TrackerState, frame: Frame, ask: Relocalise,
+                   timestamp: float) -> Placed | None:
+        """Where the map places the frame (module doc), or None."""
+        self.settle()
+        config = self.config
+        if frame.gray is None or not len(self.map):
+            return None
+        code = encode(self.ferns, frame.gray, frame.depth)
+        how = {c.id: "place recognition"
+               for c in self.map.recognise(code, k=config.map_candidates)}
+        if ask.guess is not None:
+            for c in self.map.overlapping(ask.guess, k=1, min_overlap=config.map_overlap):
+                how.setdefault(c.id, "the guessed pose")
+        if not how:
+            return None
+        kps = detect(frame.gray, kind="orb", max_features=QUERY_FEATURES)
+        # the rolling shutter's velocity: the frame's own motion as its chain tracked it
+        # (its last pose is in the chain's frame, not the map's), none for a lost frame
+        rate = solver.rate(timestamp, frame, state.motion.times)
+        _, usable = aligner(solver, state, frame, timestamp)
+
+        def align(kf: Keyframe, fr: Frame, T_c_k: np.ndarray):
+            last = None if ask.motion is None else kf.pose @ inverse_np(T_c_k) \
+                @ inverse_np(ask.motion)
+            return solver.align(kf, fr, T_c_k, rate, last)
+        reference = reference_share(state, config)
+        for key, source in how.items():
+            entry = self.map[key]
+            if entry.landmarks is None:
+                continue
+            start = landmark_pose(entry.landmarks, kps, solver.intrinsics, ratio=QUERY_RATIO)
+            if start is None:
+                continue
+            start = refine_pose(entry.landmarks, kps, start, solver.intrinsics)
+            kf = _keyframe(entry)
+            out = align(kf, frame, start.T_c_k)
+            share = inlier_share(out)
+            standard = entry.share or reference or 1.0
+            if not (usable(out) and float(out.moved) <= basin_px(config)
+                    and share >= config.lost_share_ratio * standard):
+                continue
+            note = (f"found again: keyframe {key} ({source}, {start.inliers} ORB inliers, "
+                    f"inlier share {share:.2f}")
+            if share >= config.doubt_share_ratio * standard:
+                return Placed(kf, out, note + ")")
+            other = self._second(kf, out, frame, align, usable, reference)
+            if other is not None:
+                return Placed(kf, out, note + f", confirmed by keyframe {other})")
+        return None
+
+    def _second(self, kf: Keyframe, res, frame: Frame, align, usable,
+                reference: float | None) -> int | None:
+        """A second keyframe of the map that confirms the pose ``res`` gives against ``kf``:
+        one of the two most covisible with it, aligned from that pose, usable, in the basin,
+        over the lost ratio of its own standard and placing the frame within
+        ``SECOND_M``, ``SECOND_DEG`` of the same world pose; its id, or None."""
+        config = self.config
+        pose = kf.pose @ inverse_np(np.asarray(res.T_c_k, np.float64))
+        near = sorted(self.map.covisible(kf.id).items(), key=lambda kv: -kv[1])
+        for key, _ in [kv for kv in near if self.map[kv[0]].anchored][:2]:
+            entry = self.map[key]
+            out = align(_keyframe(entry), frame, inverse_np(pose) @ entry.pose)
+            standard = entry.share or reference or 1.0
+            if not (usable(out) and float(out.moved) <= basin_px(config)
+                    and inlier_share(out) >= config.lost_share_ratio * standard):
+                continue
+            D = inverse_np(pose) @ entry.pose @ inverse_np(np.asarray(out.T_c_k, np.float64))
+            if np.linalg.norm(D[:3, 3]) <= SECOND_M \
+                    and np.degrees(rotation_angle_np(D)) <= SECOND_DEG:
+                return key
+        return None
+
+    def revisit(self, solver: Solver, state: TrackerState, frame: Frame, ask: Revisit,
+                timestamp: float) -> Placed | None:
+        """An older keyframe of the map that takes over from a new one (module doc), or
+        None."""
+        self.settle()
+        config = self.config
+        # a place left and seen again: not one the recent keyframes still see
+        recent = set(ask.exclude)
+        seen = recent.union(*(self.map.covisible(k) for k in recent if k in self.map))
+        candidates = self.map.overlapping(ask.pose, k=2, min_overlap=config.map_overlap,
+                                          exclude=seen)
+        if not candidates:
+            return None
+        align, usable = aligner(solver, state, frame, timestamp)
+        reference = reference_share(state, config)
+        for c in candidates:
+            entry = self.map[c.id]
+            kf = _keyframe(entry)
+            out = align(kf, frame, inverse_np(ask.pose) @ entry.pose)
+            if usable(out) and float(out.moved) <= basin_px(config) \
+                    and not under(out, reference, config.doubt_share_ratio):
+                return Placed(kf, out, f"revisit: keyframe {c.id} takes over (predicted "
+                              f"overlap {c.score:.2f}, inlier share {inlier_share(out):.2f})")
+        return None
+
+    # -- internals -------------------------------------------------------------------------
+    def settle(self) -> None:
+        """The keyframes described so far join the map, in the order they were made."""
+        for key, (kf, edges, future) in self._pending.items():
+            appearance = future.result()
+            self.map.add(MapKeyframe(
+                kf.id, kf.timestamp, kf.pose, edges, edge_points(edges, self.map.intrinsics),
+                appearance.landmarks, appearance.code, anchored=kf.guess is None,
+                share=self._shares.pop(key, 0.0)))
+        self._pending.clear()
+
+
+def _moved(kf: Keyframe, pose: np.ndarray) -> Keyframe:
+    return Keyframe(kf.id, kf.timestamp, np.asarray(pose, np.float64), kf.num_edges,
+                    guess=kf.guess)
+
+
+def _keyframe(entry: MapKeyframe) -> Keyframe:
+    """The tracker's record of a keyframe of the map (its edges on the device; no frame)."""
+    return Keyframe(entry.id, entry.timestamp, entry.pose,
+                    int(np.count_nonzero(entry.edges.valid)),
+                    edges=jax.device_put(entry.edges))
