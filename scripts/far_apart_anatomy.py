@@ -77,7 +77,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             ate = accuracy(seq.groundtruth, run.timestamps, run.poses)["ate_rmse_m"]
             wrong = diverged_frames(run.poses, states, gt)
             err_t, err_r = motion_errors(run.poses, gt)
-            frames = [{"i": i, "state": r.state, "reason": r.reason,
+            frames = [{"i": i, "state": r.state, "reason": r.reason, "placed": r.placed,
                        "keyframe": r.keyframe,
                        "true_deg": float(deg[i - 1]) if i else 0.0,
                        "true_m": float(metres[i - 1]) if i else 0.0,

@@ -5,10 +5,12 @@ state and reasons).
 Usage::
 
     python scripts/trajectory_digests.py CLIP [CLIP ...] [--steps 1,2,3] [--seeds 0-2]
-                                         [--batch] [--out F.json] [--check F.json]
+                                         [--batch] [--set KEY=VALUE ...]
+                                         [--out F.json] [--check F.json]
 
-Each clip runs with the default Config at every step and seed, through the streaming tracker
-(``run``) or, with ``--batch``, all seeds of a clip and step in one ``evaluate`` batch.
+Each clip runs with the default Config (with the ``--set`` overrides) at every step and
+seed, through the streaming tracker (``run``) or, with ``--batch``, all seeds of a clip and
+step in one ``evaluate`` batch.
 ``--check F.json`` compares with an earlier output and exits 1 on any difference.
 """
 
@@ -41,6 +43,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int_list, default=[1, 2, 3])
     p.add_argument("--seeds", type=int_list, default=[0, 1, 2])
     p.add_argument("--batch", action="store_true", help="through evaluate (the batch path)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a Config field for every run, as edgevo run --set takes it")
     p.add_argument("--out", type=Path)
     p.add_argument("--check", type=Path)
     args = p.parse_args(argv)
@@ -48,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     for clip in args.clips:
         for step in args.steps:
             seq = load_sequence(clip, frame_step=step)
-            configs = [Config(seed=s) for s in args.seeds]
+            configs = [Config().with_overrides([*args.set, f"seed={s}"]) for s in args.seeds]
             runs = evaluate([seq], configs, progress=False).runs if args.batch else [
                 run(seq, c, progress=False) for c in configs]
             for seed, r in zip(args.seeds, runs, strict=True):

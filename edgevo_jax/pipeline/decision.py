@@ -256,7 +256,7 @@ def decide(state: TrackerState, ev: Evidence, config: Config) -> Decision:
         if not np.all(np.isfinite(pose)):
             pose = new.motion.poses[-1]
     # a revisit: an older keyframe of the map that sees the frame takes over from a new one
-    if config.map and reason and lost is None and placed is None and kf.guess is None:
+    if config.map and reason and lost is None and placed is None and not doubted:
         if not ev.revisit_asked:
             return Decision(state, None, (Revisit(pose, _recent(new, config)),))
         if ev.revisited is not None:

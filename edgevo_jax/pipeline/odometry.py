@@ -187,6 +187,20 @@ class Odometry:
                            t_submit)
         return self._conclude(pending, res, time.perf_counter())
 
+    def locate(self, rgb: np.ndarray, depth: np.ndarray) -> decision.Placed | None:
+        """Where the keyframe map places an image (rgb (H, W, 3) or gray uint8, depth (H, W)
+        metres, of the frames' size), as a lost frame is found again (``relocalise``): the
+        map's keyframe, the solve (``result.T_c_k``: T_cam_kf) and how it was found; None
+        when no place is verified (or before the first keyframe, or with ``Config.map``
+        off). The tracker's state does not change. ValueError as ``track``."""
+        self._shape = check_frame(rgb, depth, self._last_t or 0.0, self._shape)
+        if self._places is None:
+            return None
+        frame = preprocess(rgb, depth, self.config)
+        t = self._last_t if self._last_t is not None else 0.0
+        return self._places.relocalise(self._solver, self.state, frame,
+                                       decision.Relocalise(None), t)
+
     def reset(self, *, pose: np.ndarray | None = None) -> None:
         """Forget the trajectory: keyframes, poses, the local window (its worker stopped),
         the inlier-share history, the refinements, timestamps and frame size. The next frame

@@ -24,6 +24,9 @@ from edgevo_jax.pipeline.decision import (
     MakeKeyframe,
     Motion,
     NewKeyframe,
+    Placed,
+    Relocalise,
+    Revisit,
     Search,
     TrackerState,
     begin_frame,
@@ -31,7 +34,8 @@ from edgevo_jax.pipeline.decision import (
     refine,
 )
 
-CFG = Config()
+CFG = Config(map=False)  # the odometry's rules; the map's: MAP below
+MAP = Config()
 
 
 class Solve(NamedTuple):
@@ -83,14 +87,15 @@ def made(ask: MakeKeyframe, *, pose: np.ndarray | None = None) -> NewKeyframe:
 
 
 def conclude(st: TrackerState, res, fa: FrameFacts, *, found="unused", confirmed=None,
-             handover=(), make=made, predicted=None, moved_intrinsics=False, prior=None):
+             handover=(), make=made, predicted=None, moved_intrinsics=False, prior=None,
+             config=CFG, placed="unused", revisited="unused"):
     """Run the decision as the driver does, answering its actions; the actions asked (by
     type), the final decision."""
     ev = Evidence(fa, res, st.motion.predict(prior) if predicted is None else predicted,
                   prior=prior, intrinsics_moved=moved_intrinsics)
     asked = []
-    for _ in range(5):
-        d = decide(st, ev, CFG)
+    for _ in range(6):
+        d = decide(st, ev, config)
         assert d.state is st or not d.actions
         if not d.actions:
             return asked, d
@@ -105,10 +110,16 @@ def conclude(st: TrackerState, res, fa: FrameFacts, *, found="unused", confirmed
             ev = dataclasses.replace(ev, confirmed=confirmed)
         elif isinstance(action, Handover):
             ev = dataclasses.replace(ev, handover=tuple(handover))
+        elif isinstance(action, Relocalise):
+            assert placed != "unused", "a map query nobody expected"
+            ev = dataclasses.replace(ev, relocalise_asked=True, relocalised=placed)
+        elif isinstance(action, Revisit):
+            assert revisited != "unused", "a revisit nobody expected"
+            ev = dataclasses.replace(ev, revisit_asked=True, revisited=revisited)
         else:
             assert isinstance(action, MakeKeyframe)
             ev = dataclasses.replace(ev, made_asked=True, made=make(action) if make else None)
-    raise AssertionError(f"the decision asked for more than four actions: {asked}")
+    raise AssertionError(f"the decision asked for more than five actions: {asked}")
 
 
 def keep_first(st, action):  # the search found nothing better than the first solve
@@ -332,3 +343,95 @@ def test_begin_frame_takes_the_window_refinements():
     for before, after in zip(s0.motion.poses, s1.motion.poses, strict=True):
         np.testing.assert_allclose(after, shift(x=0.1) @ before)
     assert refine(s0, []) == s0
+
+
+# -- the keyframe map's rules (Config.map) ----------------------------------------------------
+OLD = Keyframe(1, 0.1, shift(0.5), 300)  # a keyframe of the map, made long before
+
+
+def on_old(share: float = 0.9, note: str = "found again: keyframe 1") -> Placed:
+    """The map's answer: the frame aligned to OLD, 1 cm in front of it."""
+    return Placed(OLD, solve(share, T=shift(z=-0.01)), note)
+
+
+def test_a_lost_frame_asks_the_map_and_a_verified_place_makes_it_ok():
+    s0 = state()
+    asked, d = conclude(s0, solve(0.05), facts(), found=None, config=MAP, placed=on_old())
+    assert asked == [Search, Relocalise]
+    assert d.result.state == "OK" and d.result.placed == "found again: keyframe 1"
+    np.testing.assert_allclose(d.result.pose, shift(0.5, z=0.01), atol=1e-12)
+    assert d.state.keyframe.id == 1 and d.state.keyframe.since == 1.0
+    assert d.state.previous[-1].id == s0.keyframe.id  # the old current joins recovery's
+    assert d.tie is not None and d.tie.keyframe == 1 and d.tie.correction is None
+    assert not d.tie.restart
+    assert len(d.state.motion.poses) == 1  # no velocity across the jump
+    assert not d.plain
+
+
+def test_a_query_that_finds_nothing_leaves_the_frame_lost():
+    asked, d = conclude(state(), solve(0.05), facts(), found=None, config=MAP, placed=None,
+                        handover=())
+    assert asked == [Search, Relocalise, Handover]
+    assert d.result.state == "LOST" and d.tie is None and d.result.placed is None
+
+
+def test_a_frame_without_edges_does_not_ask_the_map():
+    asked, d = conclude(state(), solve(), facts(edges=0), config=MAP)
+    assert asked == [Handover] and d.result.state == "LOST"
+
+
+def test_a_keyframe_made_at_a_loss_is_guessed_and_frames_tracked_from_it_are_weak():
+    s0 = state(tracked_t=0.0)  # lost for 1 s: a keyframe at the guess
+    asked, d = conclude(s0, solve(0.05), facts(), found=None, config=MAP, placed=None)
+    assert asked == [Search, Relocalise, Handover, MakeKeyframe]
+    kf = d.state.keyframe
+    assert kf.guess is not None and kf.guess.keyframe == kf.id and kf.guess.frame == 9
+    assert "made at a guess after 1.0 s lost" in kf.guess.why
+    # the next frame, tracked well from it, asks the map; nothing found: WEAK, named
+    s1 = dataclasses.replace(d.state, shares=(0.9,), tracked_t=1.0)
+    asked, d1 = conclude(s1, solve(0.9), facts(1.03), config=MAP, placed=None)
+    assert asked == [Relocalise]
+    assert d1.result.state == "WEAK"
+    assert d1.result.reason == (f"tracked from keyframe {kf.id}, made at a guess after 1.0 s "
+                                "lost: not tied to the map")
+    # found: the chain moves into the map's frame with the frame, the window starts again
+    asked, d2 = conclude(s1, solve(0.9), facts(1.03), config=MAP, placed=on_old())
+    assert d2.result.state == "OK"
+    tie = d2.tie
+    assert tie.restart and tie.since == 9 and tie.guessed == kf.id
+    chain_pose = kf.pose @ np.linalg.inv(shift(0.01))
+    np.testing.assert_allclose(tie.correction @ chain_pose, d2.result.pose, atol=1e-12)
+    np.testing.assert_allclose(d2.state.motion.poses[0], tie.correction @ s1.motion.poses[-1],
+                               atol=1e-12)
+
+
+def test_a_keyframe_made_from_a_doubted_frame_is_guessed():
+    s0 = state(shares=(0.95,))
+    asked, d = conclude(s0, solve(0.6, flow=60.0), facts(), found=keep_first, config=MAP,
+                        placed=None)
+    assert asked == [Search, Relocalise, Handover, MakeKeyframe]
+    assert d.result.state == "WEAK" and d.result.keyframe == "flow"
+    assert d.state.keyframe.guess.why == "made from a frame not verified"
+
+
+def test_a_revisit_hands_the_frame_to_an_older_keyframe_instead_of_a_new_one():
+    s0 = state()
+    asked, d = conclude(s0, solve(0.9, flow=60.0), facts(), config=MAP,
+                        revisited=on_old(0.9, "revisit: keyframe 1 takes over"))
+    assert asked == [Handover, Revisit]
+    assert d.result.keyframe is None and d.state.num_keyframes == s0.num_keyframes
+    assert d.state.keyframe.id == 1 and d.result.placed.startswith("revisit")
+    np.testing.assert_allclose(d.result.pose, shift(0.5, z=0.01), atol=1e-12)
+    assert d.tie is not None and not d.tie.restart and d.tie.correction is None
+    # the motion moved with the frame: its velocity is kept
+    v0 = np.linalg.inv(s0.motion.poses[-1]) @ (s0.keyframe.pose @ np.linalg.inv(shift(0.01)))
+    v1 = np.linalg.inv(d.state.motion.poses[0]) @ d.state.motion.poses[1]
+    np.testing.assert_allclose(v1, v0, atol=1e-12)
+    # nothing takes over: the new keyframe as before; the ids a revisit leaves out
+    asked, d = conclude(s0, solve(0.9, flow=60.0), facts(), config=MAP, revisited=None)
+    assert asked == [Handover, Revisit, MakeKeyframe] and d.result.keyframe == "flow"
+
+
+def test_the_map_off_asks_nothing_of_it():
+    asked, d = conclude(state(tracked_t=0.0), solve(0.05), facts(), found=None)
+    assert asked == [Search, Handover, MakeKeyframe] and d.state.keyframe.guess is None
