@@ -44,6 +44,10 @@ MAX_AXIS_DEG = 60.0
 #: nor one whose camera is farther from the query's than this many times the median depth
 #: of its edges: its scene would be seen across more than twice its own distance
 MAX_DISTANCE_DEPTHS = 2.0
+#: the points per keyframe a query projects (an even subsample of its edges): a share of
+#: 64 points is within ~6 % of the share of all of them (binomial), and a query over 1,000
+#: keyframes projects them in one array
+QUERY_POINTS = 64
 
 
 class MapFullWarning(UserWarning):
@@ -153,9 +157,9 @@ class KeyframeMap:
         self._row_ids: list[int] = []  # row -> id
         cap = 64
         self._codes = np.zeros((cap, NUM_FERNS), np.uint8)
-        self._centres = np.zeros((cap, 3))
-        self._axes = np.zeros((cap, 3))
+        self._poses_kept = np.zeros((cap, 4, 4))  # T_world_kf of each row
         self._depths = np.zeros(cap)  # median depth of each keyframe's edges
+        self._points = np.full((cap, QUERY_POINTS, 3), np.nan, np.float32)  # NaN: none
         self._live = np.zeros(cap, bool)  # anchored: what queries may return
 
     # -- contents ------------------------------------------------------------------------
@@ -176,7 +180,7 @@ class KeyframeMap:
     @property
     def nbytes(self) -> int:
         """Bytes held by the keyframes and the query arrays."""
-        arrays = (self._codes, self._centres, self._axes, self._depths, self._live)
+        arrays = (self._codes, self._poses_kept, self._depths, self._live, self._points)
         return int(sum(e.nbytes for e in self._entries.values())
                    + sum(a.nbytes for a in arrays))
 
@@ -202,6 +206,10 @@ class KeyframeMap:
         self._row_ids.append(kf.id)
         self._entries[kf.id] = kf
         self._codes[row] = kf.code
+        n = kf.points.shape[1]
+        if n:
+            pick = np.linspace(0, n - 1, min(n, QUERY_POINTS)).astype(int)
+            self._points[row, :len(pick)] = kf.points[:, pick].T
         self._place(kf)
         self._covisible[kf.id] = {}
         if kf.anchored:
@@ -257,14 +265,12 @@ class KeyframeMap:
         """The ``k`` anchored keyframes (not in ``exclude``) that a camera at T_world_cam
         would see best, by predicted overlap (at least ``min_overlap``), best first."""
         T = np.asarray(T_w_c, np.float64)
-        out = []
-        for key in self._near(T, self._live_rows(exclude)):
-            kf = self._entries[key]
-            share = predicted_overlap(kf.points, inverse_np(T) @ kf.pose, self.intrinsics,
-                                      self.shape)
-            if share >= min_overlap:
-                out.append(Candidate(key, share))
-        return sorted(out, key=lambda c: -c.score)[:k]
+        rows = self._near(T, self._live_rows(exclude))
+        if not rows.size:
+            return []
+        share = self._overlaps(inverse_np(T), rows)
+        order = [i for i in np.argsort(-share, kind="stable")[:k] if share[i] >= min_overlap]
+        return [Candidate(self._row_ids[rows[i]], float(share[i])) for i in order]
 
     # -- internals -------------------------------------------------------------------------
     def _grow(self) -> None:
@@ -272,14 +278,15 @@ class KeyframeMap:
             out = np.zeros((2 * len(a), *a.shape[1:]), a.dtype)
             out[:len(a)] = a
             return out
-        self._codes, self._centres, self._axes, self._depths, self._live = (
-            bigger(a) for a in (self._codes, self._centres, self._axes, self._depths,
-                                self._live))
+        self._codes, self._poses_kept, self._depths, self._live = (
+            bigger(a) for a in (self._codes, self._poses_kept, self._depths, self._live))
+        points = np.full((2 * len(self._points), *self._points.shape[1:]), np.nan, np.float32)
+        points[:len(self._points)] = self._points
+        self._points = points
 
     def _place(self, kf: MapKeyframe) -> None:
         row = self._rows[kf.id]
-        self._centres[row] = kf.pose[:3, 3]
-        self._axes[row] = kf.pose[:3, 2]
+        self._poses_kept[row] = kf.pose
         self._depths[row] = float(np.median(kf.points[2])) if kf.points.shape[1] else 0.0
         self._live[row] = kf.anchored
 
@@ -290,25 +297,51 @@ class KeyframeMap:
                 live[self._rows[key]] = False
         return np.flatnonzero(live)
 
-    def _near(self, T_w_c: np.ndarray, rows: np.ndarray) -> list[int]:
-        """Ids of the keyframes of ``rows`` whose view could overlap a camera at T_w_c
+    def _near(self, T_w_c: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """The rows of ``rows`` whose keyframes' views could overlap a camera at T_w_c
         (``MAX_AXIS_DEG``, ``MAX_DISTANCE_DEPTHS``), in the order they joined."""
         if not rows.size:
-            return []
-        cos = self._axes[rows] @ T_w_c[:3, 2]
-        dist = np.linalg.norm(self._centres[rows] - T_w_c[:3, 3], axis=1)
+            return rows
+        poses = self._poses_kept[rows]
+        cos = poses[:, :3, 2] @ T_w_c[:3, 2]  # the optical axes
+        dist = np.linalg.norm(poses[:, :3, 3] - T_w_c[:3, 3], axis=1)
         near = (cos >= np.cos(np.radians(MAX_AXIS_DEG))) \
             & (dist <= MAX_DISTANCE_DEPTHS * self._depths[rows])
-        return [self._row_ids[r] for r in rows[near]]
+        return rows[near]
+
+    def _overlaps(self, T_c_w: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """The predicted overlap of the keyframes of ``rows`` with a camera at T_cam_world:
+        (len(rows),)."""
+        return self._share(T_c_w[None] @ self._poses_kept[rows], self._points[rows])
+
+    def _share(self, T_c_k: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """``predicted_overlap`` of points (n, P, 3) (NaN rows: none) at T_cur_kf (n, 4, 4),
+        in one array: (n,)."""
+        p = points.astype(np.float64) @ np.swapaxes(T_c_k[:, :3, :3], 1, 2) \
+            + T_c_k[:, None, :3, 3]
+        fx, fy, cx, cy = (float(v) for v in self.intrinsics)
+        z = p[..., 2]
+        has = np.isfinite(z)
+        front = has & (z > 0.1)
+        zs = np.where(front, z, 1.0)
+        u, v = fx * p[..., 0] / zs + cx, fy * p[..., 1] / zs + cy
+        h, w = self.shape
+        inside = front & (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)
+        return np.count_nonzero(inside, axis=1) / np.maximum(np.count_nonzero(has, axis=1), 1)
 
     def _link(self, kf: MapKeyframe) -> None:
-        """Covisibility of an anchored keyframe with the anchored ones near it."""
-        for key in self._near(kf.pose, self._live_rows([kf.id])):
-            other = self._entries[key]
-            rel = inverse_np(other.pose) @ kf.pose  # T_other_kf
-            weight = min(predicted_overlap(kf.points, rel, self.intrinsics, self.shape),
-                         predicted_overlap(other.points, inverse_np(rel), self.intrinsics,
-                                           self.shape))
+        """Covisibility of an anchored keyframe with the anchored ones near it: the smaller
+        of the two predicted overlaps (each keyframe's points seen from the other)."""
+        rows = self._near(kf.pose, self._live_rows([kf.id]))
+        if not rows.size:
+            return
+        poses = self._poses_kept[rows]
+        theirs = self._share(inverse_np(kf.pose)[None] @ poses, self._points[rows])
+        mine = self._share(inverse_np(poses) @ kf.pose,
+                           np.broadcast_to(self._points[self._rows[kf.id]],
+                                           (len(rows), QUERY_POINTS, 3)))
+        for r, weight in zip(rows, np.minimum(theirs, mine), strict=True):
             if weight > 0:
-                self._covisible[kf.id][key] = weight
-                self._covisible[key][kf.id] = weight
+                other = self._row_ids[r]
+                self._covisible[kf.id][other] = float(weight)
+                self._covisible[other][kf.id] = float(weight)
