@@ -59,8 +59,9 @@ class MapKeyframe:
     """One keyframe of the map (module doc): ``id`` (the tracker's keyframe number),
     ``timestamp`` (s), ``pose`` T_world_kf (4, 4) float64, ``edges`` (host arrays),
     ``points`` (3, N) float32: its valid edges' points in its camera (m), ``landmarks`` (None
-    without a gray image and depth), ``code`` (NUM_FERNS,) uint8, ``anchored`` (False: made at
-    a guess, not tied to the map yet) and ``share``: the highest inlier share of a frame
+    without a gray image and depth, or not described yet), ``code`` (NUM_FERNS,) uint8 (None:
+    not described yet; ``KeyframeMap.describe``), ``anchored`` (False: made at a guess, not
+    tied to the map yet) and ``share``: the highest inlier share of a frame
     tracked against it (0: none yet), the standard a relocalised frame is held to."""
 
     id: int
@@ -69,7 +70,7 @@ class MapKeyframe:
     edges: KeyframeEdges
     points: np.ndarray
     landmarks: Landmarks | None
-    code: np.ndarray
+    code: np.ndarray | None
     anchored: bool = True
     share: float = 0.0
 
@@ -78,7 +79,7 @@ class MapKeyframe:
         """Bytes held by its arrays."""
         arrays = [a for a in self.edges if a is not None]
         return int(sum(np.asarray(a).nbytes for a in arrays) + self.points.nbytes
-                   + self.code.nbytes + self.pose.nbytes
+                   + (0 if self.code is None else self.code.nbytes) + self.pose.nbytes
                    + (self.landmarks.nbytes if self.landmarks is not None else 0))
 
 
@@ -161,6 +162,7 @@ class KeyframeMap:
         self._depths = np.zeros(cap)  # median depth of each keyframe's edges
         self._points = np.full((cap, QUERY_POINTS, 3), np.nan, np.float32)  # NaN: none
         self._live = np.zeros(cap, bool)  # anchored: what queries may return
+        self._described = np.zeros(cap, bool)  # with a code: what recognition may return
 
     # -- contents ------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -180,7 +182,8 @@ class KeyframeMap:
     @property
     def nbytes(self) -> int:
         """Bytes held by the keyframes and the query arrays."""
-        arrays = (self._codes, self._poses_kept, self._depths, self._live, self._points)
+        arrays = (self._codes, self._poses_kept, self._depths, self._live, self._described,
+                  self._points)
         return int(sum(e.nbytes for e in self._entries.values())
                    + sum(a.nbytes for a in arrays))
 
@@ -190,7 +193,7 @@ class KeyframeMap:
         already. ValueError for an id already kept or a code of another length."""
         if kf.id in self._entries:
             raise ValueError(f"keyframe {kf.id} is in the map already")
-        if kf.code.shape != (NUM_FERNS,):
+        if kf.code is not None and kf.code.shape != (NUM_FERNS,):
             raise ValueError(f"a code has {NUM_FERNS} ferns, got shape {kf.code.shape}")
         if len(self._entries) >= self.max_keyframes:
             if self.full_at is None:
@@ -205,7 +208,8 @@ class KeyframeMap:
         self._rows[kf.id] = row
         self._row_ids.append(kf.id)
         self._entries[kf.id] = kf
-        self._codes[row] = kf.code
+        if kf.code is not None:
+            self._codes[row], self._described[row] = kf.code, True
         n = kf.points.shape[1]
         if n:
             pick = np.linspace(0, n - 1, min(n, QUERY_POINTS)).astype(int)
@@ -215,6 +219,16 @@ class KeyframeMap:
         if kf.anchored:
             self._link(kf)
         return True
+
+    def describe(self, key: int, landmarks: Landmarks | None, code: np.ndarray) -> None:
+        """A kept keyframe's appearance, described after it joined: recognition returns it
+        from now on."""
+        if code.shape != (NUM_FERNS,):
+            raise ValueError(f"a code has {NUM_FERNS} ferns, got shape {code.shape}")
+        row = self._rows[key]
+        self._entries[key] = dataclasses.replace(self._entries[key], landmarks=landmarks,
+                                                 code=code)
+        self._codes[row], self._described[row] = code, True
 
     def set_pose(self, key: int, pose: np.ndarray) -> None:
         """A kept keyframe's new pose T_world_kf (the window refined it); others are
@@ -251,9 +265,10 @@ class KeyframeMap:
     # -- queries ---------------------------------------------------------------------------
     def recognise(self, code: np.ndarray, *, k: int, exclude: Iterable[int] = ()
                   ) -> list[Candidate]:
-        """The ``k`` anchored keyframes (not in ``exclude``) whose codes are most like
-        ``code``, most alike first (ties: the older first); empty when there is none."""
+        """The ``k`` anchored, described keyframes (not in ``exclude``) whose codes are most
+        like ``code``, most alike first (ties: the older first); empty when there is none."""
         rows = self._live_rows(exclude)
+        rows = rows[self._described[rows]]
         if not rows.size:
             return []
         score = similarity(self._codes[rows], np.asarray(code, np.uint8))
@@ -278,8 +293,9 @@ class KeyframeMap:
             out = np.zeros((2 * len(a), *a.shape[1:]), a.dtype)
             out[:len(a)] = a
             return out
-        self._codes, self._poses_kept, self._depths, self._live = (
-            bigger(a) for a in (self._codes, self._poses_kept, self._depths, self._live))
+        self._codes, self._poses_kept, self._depths, self._live, self._described = (
+            bigger(a) for a in (self._codes, self._poses_kept, self._depths, self._live,
+                                self._described))
         points = np.full((2 * len(self._points), *self._points.shape[1:]), np.nan, np.float32)
         points[:len(self._points)] = self._points
         self._points = points

@@ -28,7 +28,7 @@ from ..frontend.selection import KeyframeEdges
 from ..image.preprocess import Frame
 
 
-def _lower_priority() -> None:
+def lower_priority() -> None:
     """Run the calling thread at the lowest CPU priority where the OS allows it (Linux sets a
     nice value per thread): tracking comes first, the window takes the cycles left over."""
     try:
@@ -64,7 +64,7 @@ class Mapper:
         self.local_map = LocalMap(config, np.asarray(intrinsics), shape,
                                   rolling_shutter=rolling_shutter)
         self._pool = (ThreadPoolExecutor(1, thread_name_prefix="edgevo-map",
-                                         initializer=_lower_priority)
+                                         initializer=lower_priority)
                       if self.lag > 0 else None)
         self._pending: deque[tuple[int, object, Future]] = deque()  # (due frame, key, step)
         self.worker_ms: list[float] = []  # the window's time per keyframe, in order

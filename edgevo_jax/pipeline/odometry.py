@@ -223,9 +223,12 @@ class Odometry:
         self._given, self.warm_up_ms = given, warm_up_ms
 
     def close(self) -> None:
-        """Stop the local map's worker thread (refinements not taken yet are dropped)."""
+        """Stop the local map's worker thread (refinements not taken yet are dropped) and
+        the keyframe map's (keyframes made are described first)."""
         if self._mapper is not None:
             self._mapper.close()
+        if self._places is not None:
+            self._places.close()
 
     def __enter__(self) -> Odometry:
         return self

@@ -18,14 +18,15 @@ its tracked pose (predicted overlap at least ``Config.map_overlap``), best first
 whose alignment from that pose is usable, stays in the basin and keeps the recent inlier
 share takes over from the new keyframe the frame asked for.
 
-The keyframes' appearance (ORB keypoints and the fern code) is described on the
-preprocessing's idle worker while the tracker goes on; it joins the map, in order, before
-the next query or keyframe (``settle``): when it is computed never changes what it holds.
+A keyframe joins the map when it is made; its appearance (ORB keypoints and the fern code)
+is described on a worker of its own, at the lowest priority, while the tracker goes on, and
+joins it, in order, before the next query that reads it (``settle``; a revisit reads
+geometry only): when it is computed never changes what the map holds.
 """
 
 from __future__ import annotations
 
-from concurrent.futures import Future
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import jax
 import numpy as np
@@ -36,7 +37,7 @@ from ..derive import basin_px
 from ..frontend.features import detect, landmark_pose, refine_pose
 from ..frontend.selection import KeyframeEdges
 from ..geometry import inverse_np, rotation_angle_np
-from ..image.preprocess import Frame, beside
+from ..image.preprocess import Frame
 from ..map import KeyframeMap, MapKeyframe, describe, edge_points, encode, make_ferns
 from .decision import (
     Keyframe,
@@ -50,6 +51,7 @@ from .decision import (
     under,
 )
 from .effects import Solver, aligner
+from .mapping import lower_priority
 from .recovery import AGREE_DEG, AGREE_M
 
 #: ORB keypoints of a frame being relocalised (a keyframe keeps 1000): twice as many match a
@@ -76,42 +78,43 @@ class Places:
         self.config = config
         self.map = KeyframeMap(intrinsics, shape, max_keyframes=config.map_max_keyframes)
         self.ferns = make_ferns()
-        # keyframes whose appearance is being described: id -> (record, edges, future)
-        self._pending: dict[int, tuple[Keyframe, KeyframeEdges, Future]] = {}
-        self._shares: dict[int, float] = {}  # best shares of pending keyframes
+        # keyframes whose appearance is being described, in order: (id, future)
+        self._pending: list[tuple[int, Future]] = []
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="edgevo-places",
+                                        initializer=lower_priority)
 
     # -- what the tracker tells it --------------------------------------------------------
     def add(self, kf: Keyframe, edges: KeyframeEdges, frame: Frame,
             intrinsics: Intrinsics) -> None:
-        """A keyframe was made: ``kf`` (anchored unless ``kf.guess``) with its host edges,
-        described from ``frame`` on the preprocessing's worker."""
-        self.settle()
+        """A keyframe was made: ``kf`` (anchored unless ``kf.guess``) joins the map with its
+        host edges at once; its appearance is described from ``frame`` on a worker."""
         config = self.config
-        future = beside(describe, self.ferns, frame.gray, frame.depth, intrinsics,
-                        min_depth=config.min_depth, max_depth=config.max_depth)
-        self._pending[kf.id] = (kf, edges, future)
+        if not self.map.add(MapKeyframe(kf.id, kf.timestamp, kf.pose, edges,
+                                        edge_points(edges, self.map.intrinsics), None, None,
+                                        anchored=kf.guess is None)):
+            return
+        self._pending.append((kf.id, self._pool.submit(
+            describe, self.ferns, frame.gray, frame.depth, intrinsics,
+            min_depth=config.min_depth, max_depth=config.max_depth)))
 
     def set_pose(self, key: int, pose: np.ndarray) -> None:
         """Keyframe ``key`` has a new pose T_world_kf (the window refined it)."""
-        if key in self._pending:
-            kf, edges, future = self._pending[key]
-            self._pending[key] = (_moved(kf, pose), edges, future)
-        else:
-            self.map.set_pose(key, pose)
+        self.map.set_pose(key, pose)
 
     def note_share(self, key: int, share: float) -> None:
         """A frame was tracked against keyframe ``key`` with this inlier share."""
-        if key in self._pending:
-            self._shares[key] = max(self._shares.get(key, 0.0), share)
-        else:
-            self.map.note_share(key, share)
+        self.map.note_share(key, share)
+
+    def close(self) -> None:
+        """Describe what is pending and stop the worker."""
+        self.settle()
+        self._pool.shutdown(wait=True)
 
     def tie(self, tie: Tie) -> None:
         """Carry out the map's part of a ``Tie``: the guessed chain's keyframes take the
         correction and are anchored."""
         if tie.correction is None or tie.guessed is None:
             return
-        self.settle()
         keys = [k for k in self.map.ids if k >= tie.guessed and not self.map[k].anchored]
         self.map.anchor(keys, tie.correction)
 
@@ -191,8 +194,7 @@ class Places:
     def revisit(self, solver: Solver, state: TrackerState, frame: Frame, ask: Revisit,
                 timestamp: float) -> Placed | None:
         """An older keyframe of the map that takes over from a new one (module doc), or
-        None."""
-        self.settle()
+        None. Geometry only: it waits for no description."""
         config = self.config
         # a place left and seen again: not one the recent keyframes still see
         recent = set(ask.exclude)
@@ -215,19 +217,12 @@ class Places:
 
     # -- internals -------------------------------------------------------------------------
     def settle(self) -> None:
-        """The keyframes described so far join the map, in the order they were made."""
-        for key, (kf, edges, future) in self._pending.items():
+        """The keyframes described so far take their appearance, in the order they were
+        made (waiting for the worker where needed)."""
+        for key, future in self._pending:
             appearance = future.result()
-            self.map.add(MapKeyframe(
-                kf.id, kf.timestamp, kf.pose, edges, edge_points(edges, self.map.intrinsics),
-                appearance.landmarks, appearance.code, anchored=kf.guess is None,
-                share=self._shares.pop(key, 0.0)))
+            self.map.describe(key, appearance.landmarks, appearance.code)
         self._pending.clear()
-
-
-def _moved(kf: Keyframe, pose: np.ndarray) -> Keyframe:
-    return Keyframe(kf.id, kf.timestamp, np.asarray(pose, np.float64), kf.num_edges,
-                    guess=kf.guess)
 
 
 def _keyframe(entry: MapKeyframe) -> Keyframe:
