@@ -194,8 +194,8 @@ def checked_readout(readout_s: float) -> float:
 
 
 #: Rolling-shutter readout time (s) of the TUM benchmark's colour cameras (Kinect-type sensors
-#: reading their rows one after another): 20 ms, measured without ground truth by
-#: ``scripts/readout_time.py`` on fr1 and fr3 clips (docs/decisions.md).
+#: reading their rows one after another): 20 ms, measured without ground truth on fr1 and fr3
+#: clips (docs/decisions.md); ``edgevo calibrate`` estimates another camera's.
 FREIBURG_READOUT_S = 0.020
 
 

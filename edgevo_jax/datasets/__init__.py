@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from .calibration import camera_from_name, read_calibration
+from .cover import covered_copy
 from .groundtruth import groundtruth_pose_at
 from .pingpong import pingpong, pingpong_indices
 from .tum import TumSequence, load_sequence, read_file_list, subsequence
@@ -18,6 +19,7 @@ __all__ = [
     "BUNDLED_CLIP",
     "TumSequence",
     "camera_from_name",
+    "covered_copy",
     "groundtruth_pose_at",
     "load_sequence",
     "pingpong",
