@@ -56,6 +56,20 @@ def detect(gray: np.ndarray, *, max_features: int = MAX_FEATURES,
     return Keypoints(np.array([k.pt for k in kps], np.float32), desc.astype(dtype))
 
 
+def _matches(a: np.ndarray, b: np.ndarray, ratio: float, min_matches: int
+             ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Indices (into ``a``, into ``b``) of the descriptors matched by Lowe's ratio test
+    (Hamming for binary descriptors, else L2); None when fewer than ``min_matches``."""
+    if len(a) < 2 or len(b) < 2:
+        return None
+    norm = cv2.NORM_HAMMING if a.dtype == np.uint8 else cv2.NORM_L2
+    pairs = cv2.BFMatcher(norm).knnMatch(a, b, k=2)
+    good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < ratio * p[1].distance]
+    if len(good) < min_matches:
+        return None
+    return (np.array([m.queryIdx for m in good]), np.array([m.trainIdx for m in good]))
+
+
 def relative_pose(
     kf: Keypoints, kf_depth: np.ndarray, cur: Keypoints, intr: Intrinsics, *,
     min_depth: float, max_depth: float, ratio: float = RATIO,
@@ -64,15 +78,10 @@ def relative_pose(
     """T_cur_kf (4, 4, float64) from keypoints matched between a keyframe (with its depth
     (H, W) in metres; outside [min_depth, max_depth] or NaN = missing) and a frame, or None
     when fewer than ``min_inliers`` matches agree on one pose."""
-    if len(kf.uv) < 2 or len(cur.uv) < 2:
+    matched = _matches(kf.descriptors, cur.descriptors, ratio, min_inliers)
+    if matched is None:
         return None
-    norm = cv2.NORM_HAMMING if kf.descriptors.dtype == np.uint8 else cv2.NORM_L2
-    pairs = cv2.BFMatcher(norm).knnMatch(kf.descriptors, cur.descriptors, k=2)
-    good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < ratio * p[1].distance]
-    if len(good) < min_inliers:
-        return None
-    q = np.array([m.queryIdx for m in good])
-    t = np.array([m.trainIdx for m in good])
+    q, t = matched
     pts, ok = _lift(kf.uv[q], kf_depth, intr, min_depth, max_depth)
     if ok.sum() < min_inliers:
         return None
@@ -133,15 +142,10 @@ def landmark_pose(lm: Landmarks, cur: Keypoints, intr: Intrinsics, *, ratio: flo
     """T_cur_kf from a keyframe's landmarks matched to a frame's keypoints (Lowe's ratio
     test, then EPnP in RANSAC), with its inlier count; None when fewer than ``min_inliers``
     matches agree on one pose."""
-    if len(lm.xyz) < 2 or len(cur.uv) < 2:
+    matched = _matches(lm.descriptors, cur.descriptors, ratio, min_inliers)
+    if matched is None:
         return None
-    norm = cv2.NORM_HAMMING if lm.descriptors.dtype == np.uint8 else cv2.NORM_L2
-    pairs = cv2.BFMatcher(norm).knnMatch(lm.descriptors, cur.descriptors, k=2)
-    good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < ratio * p[1].distance]
-    if len(good) < min_inliers:
-        return None
-    q = np.array([m.queryIdx for m in good])
-    t = np.array([m.trainIdx for m in good])
+    q, t = matched
     return _pnp(lm.xyz[q], cur.uv[t], intr, reprojection_px, min_inliers, count=True)
 
 
