@@ -265,6 +265,12 @@ def decide(state: TrackerState, ev: Evidence, config: Config) -> Decision:
             T_c_k = orthonormalise_np(np.asarray(res.T_c_k, np.float64))
             new = _tracked(refine(state, ev.handover), kf, res, facts, config, over=True)
             pose = kf.pose @ inverse_np(T_c_k)
+    tie = None
+    if placed is not None:  # the motion moves into the map's frame with the frame, before a
+        # keyframe made from it reads its velocity (rolling shutter, depth timing)
+        tie = _tie(chain_guess or state.keyframe.guess, kf.id, pose, chain)
+        new = dataclasses.replace(new, motion=Motion() if chain is None else dataclasses.replace(
+            new.motion, poses=tuple(pose @ inverse_np(chain) @ p for p in new.motion.poses)))
     used = new.keyframe.num_edges
     made = None
     if reason:
@@ -284,11 +290,6 @@ def decide(state: TrackerState, ev: Evidence, config: Config) -> Decision:
         if guess is not None:
             made = made._replace(keyframe=dataclasses.replace(made.keyframe, guess=guess))
         pose, new = made.keyframe.pose, _install(new, made.keyframe, config)
-    tie = None
-    if placed is not None:  # the motion moves into the map's frame with the frame
-        tie = _tie(chain_guess or state.keyframe.guess, kf.id, pose, chain)
-        new = dataclasses.replace(new, motion=Motion() if chain is None else dataclasses.replace(
-            new.motion, poses=tuple(pose @ inverse_np(chain) @ p for p in new.motion.poses)))
     new = dataclasses.replace(new, motion=new.motion.push(pose, facts.timestamp))
     plain = (lost is None and kf.id == start_id and made is None and res is ev.solve
              and not ev.intrinsics_moved)

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..camera import Intrinsics
 from ..config import Config
-from ..derive import solve_knobs, solve_structure
+from ..derive import basin_px, solve_knobs, solve_structure
 from ..frontend import selection
 from ..frontend.chunk import track_next_jit
 from ..frontend.depth import depth_points
@@ -142,7 +142,9 @@ def search(solver: Solver, state: TrackerState, frame: Frame, ask: Search, times
         frame, [state.keyframe, *reversed(state.previous)], first=ask.first,
         predicted=predicted, starts=starts, align=align, usable=usable,
         good_enough=None if reference is None else (lambda out: not under(out, reference, doubt)),
-        intrinsics=solver.intrinsics, config=config)
+        intrinsics=solver.intrinsics, config=config,
+        # with the map, a frame far from every start is the map's to find
+        basin=basin_px(config) if config.map else None)
 
 
 def confirm(solver: Solver, state: TrackerState, frame: Frame, ask: Confirm,

@@ -90,15 +90,17 @@ def search(
     frame: Frame, keyframes: Sequence[Any], *, first, predicted: np.ndarray,
     starts: Sequence[np.ndarray], align: Callable[[Any, Frame, np.ndarray], Any],
     usable: Callable[[Any], bool], good_enough: Callable[[Any], bool] | None,
-    intrinsics: Intrinsics, config: Config,
+    intrinsics: Intrinsics, config: Config, basin: float | None = None,
 ) -> Found | None:
     """The recovery search (module doc). ``keyframes``: the current one first, then the
     earlier ones to try (each with ``.pose`` T_w_kf); ``first``: the solve from the
     prediction, None when it was unusable; ``predicted`` and ``starts`` (``motion_starts``)
     world poses; ``align(kf, frame, T_cur_kf)`` a solve; ``usable(res)`` whether a solve can
     be used; ``good_enough(res)`` whether it ends the search (None: nothing does, as before
-    any share was seen). Returns the keyframe and solve with the highest inlier share (the
-    first's when none beats it) and whether it is confirmed; None when nothing is usable."""
+    any share was seen); ``basin`` (level-0 px; None: none): a solve that moved farther from
+    its start (``moved``) found a minimum it could not see from there and is no candidate.
+    Returns the keyframe and solve with the highest inlier share (the first's when none beats
+    it) and whether it is confirmed; None when nothing is usable."""
     current = keyframes[0]
     best = (current, first) if first is not None else None
     # every usable solve: (keyframe, solve, whether its start came from features)
@@ -106,7 +108,7 @@ def search(
 
     def better(kf, out, features: bool) -> None:
         nonlocal best
-        if not usable(out):
+        if not usable(out) or (basin is not None and float(out.moved) > basin):
             return
         tried.append((kf, out, features))
         if best is None or inlier_share(out) > inlier_share(best[1]):

@@ -112,7 +112,8 @@ def conclude(st: TrackerState, res, fa: FrameFacts, *, found="unused", confirmed
             ev = dataclasses.replace(ev, handover=tuple(handover))
         elif isinstance(action, Relocalise):
             assert placed != "unused", "a map query nobody expected"
-            ev = dataclasses.replace(ev, relocalise_asked=True, relocalised=placed)
+            ev = dataclasses.replace(ev, relocalise_asked=True, relocalised=placed(
+                st, action) if callable(placed) else placed)
         elif isinstance(action, Revisit):
             assert revisited != "unused", "a revisit nobody expected"
             ev = dataclasses.replace(ev, revisit_asked=True, revisited=revisited)
@@ -366,6 +367,23 @@ def test_a_lost_frame_asks_the_map_and_a_verified_place_makes_it_ok():
     assert not d.tie.restart
     assert len(d.state.motion.poses) == 1  # no velocity across the jump
     assert not d.plain
+
+
+def test_a_keyframe_made_where_the_map_placed_a_frame_reads_no_velocity_across_the_jump():
+    # the held pose of a loss and the place found are not a motion: a keyframe made there
+    # must not unroll its edges for it (rolling shutter) nor move their depths by it
+    asks = []
+
+    def make(ask):
+        asks.append(ask)
+        return made(ask)
+
+    placed = Placed(OLD, solve(0.9, T=shift(z=-0.01), flow=60.0), "found again: keyframe 1")
+    asked, d = conclude(state(), solve(0.05), facts(), found=None, config=MAP, placed=placed,
+                        make=make, handover=())
+    assert asked == [Search, Relocalise, Handover, MakeKeyframe] and d.result.state == "OK"
+    assert asks[0].motion.poses == ()
+    np.testing.assert_allclose(asks[0].pose, shift(0.5, z=0.01), atol=1e-12)
 
 
 def test_a_query_that_finds_nothing_leaves_the_frame_lost():

@@ -148,3 +148,26 @@ def test_a_loss_longer_than_the_keyframe_interval_starts_over(xyz, teddy):
     assert early.state == LOST and early.keyframe is None and odo.keyframe[0] == kf_before
     late = odo.track(*teddy.load_frame(120), t[3] + 1.2)
     assert late.state == LOST and late.keyframe == "lost" and odo.keyframe[0] == t[3] + 1.2
+
+
+def test_a_search_solve_that_left_its_basin_is_no_candidate():
+    """The recovery search with a basin (the map on): an earlier keyframe's solve that
+    wandered 214 px from its start and matched more edges there does not win."""
+    from types import SimpleNamespace as NS
+
+    from edgevo_jax.pipeline.recovery import search
+
+    kfs = [NS(id=0, pose=np.eye(4)), NS(id=1, pose=np.eye(4))]
+    first = NS(inliers=10, visible=100, moved=1.0, T_c_k=np.eye(4))
+
+    def align(kf, frame, T_c_k):
+        far = kf.id == 1
+        return NS(inliers=60 if far else 5, visible=100, moved=214.0 if far else 2.0,
+                  T_c_k=np.eye(4))
+
+    kw = dict(first=first, predicted=np.eye(4), starts=[], align=align,
+              usable=lambda out: True, good_enough=None, intrinsics=None,
+              config=Config(recovery_features=False))
+    assert search(None, kfs, **kw).keyframe.id == 1  # without: the highest share wins
+    found = search(None, kfs, **kw, basin=20.0)
+    assert found.keyframe.id == 0 and found.result is first
