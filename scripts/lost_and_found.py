@@ -97,7 +97,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             after = run_sequence(covered, config, progress=False)
             row = {"seed": seed, **covered_run(covered, after, args.cover, gt),
                    "uncovered_ate_m": accuracy(plain.groundtruth, before.timestamps,
-                                               before.poses)["ate_rmse_m"]}
+                                               before.poses)["ate_rmse_m"],
+                   # the map's memory over the uncovered clip: keyframes, bytes, seconds
+                   "uncovered_map": [before.map_keyframes, before.map_bytes,
+                                     float(plain.timestamps[-1] - plain.timestamps[0])]}
             runs.append(row)
             print(f"seed {seed}: covered frames OK {row['covered_ok']}; first within "
                   f"{100 * WITHIN_M:.0f} cm / {WITHIN_DEG:.0f} deg: frame "
