@@ -3,6 +3,8 @@ and never written as a jump, recovery that continues the trajectory, feature hyp
 
 from __future__ import annotations
 
+from types import SimpleNamespace as NS
+
 import numpy as np
 import pytest
 from conftest import shared_tum_dir
@@ -15,6 +17,7 @@ from edgevo_jax.geometry import inverse_np
 from edgevo_jax.image.preprocess import to_gray
 from edgevo_jax.io import poses7_to_matrices
 from edgevo_jax.pipeline.odometry import LOST, OK, Odometry
+from edgevo_jax.pipeline.recovery import search
 
 TEDDY = "rgbd_dataset_freiburg3_teddy_first200"
 #: the tracker without the share check and the feature starts (the plain edge alignment)
@@ -153,10 +156,6 @@ def test_a_loss_longer_than_the_keyframe_interval_starts_over(xyz, teddy):
 def test_a_search_solve_that_left_its_basin_is_no_candidate():
     """The recovery search with a basin (the map on): an earlier keyframe's solve that
     wandered 214 px from its start and matched more edges there does not win."""
-    from types import SimpleNamespace as NS
-
-    from edgevo_jax.pipeline.recovery import search
-
     kfs = [NS(id=0, pose=np.eye(4)), NS(id=1, pose=np.eye(4))]
     first = NS(inliers=10, visible=100, moved=1.0, T_c_k=np.eye(4))
 
