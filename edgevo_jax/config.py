@@ -192,6 +192,20 @@ class Config:
     frame at the frame's pose (predicted overlap): the bar for an older keyframe to take
     over on a revisit, and for a keyframe to be tried at a guessed pose. Why:
     ``docs/decisions.md``, "The keyframe map"."""
+    loops: bool = True
+    """[-] Close loops (with ``map``): a new keyframe that an older keyframe of the map sees,
+    one the pose graph does not tie to it within twice ``window_size`` edges, is aligned to
+    it from the chain's pose beside tracking, verified as a revisit is and confirmed by a
+    keyframe beside the old one; the relation is a loop edge, and a pose graph over the
+    map's keyframes (``backend/pose_graph.py``) spreads the drift beside tracking: the
+    keyframes, the window and the frames tracked from them move with it. False: the map's
+    odometry, bit for bit. Why: ``docs/decisions.md``, "Loops closed"."""
+    loop_lag: int = 45
+    """[frames] Frames after a keyframe at which the tracker takes its loop search, and
+    after a pose graph is submitted at which it takes the correction (waiting for the
+    worker if need be): when they are taken never depends on the machine, so runs stay
+    deterministic. Why: 1.5 s at 30 Hz, more than a cold solve of 1,000 keyframes here
+    (``docs/results.md``, "Loops closed")."""
     # --- determinism ---
     seed: int = 0
     """[-] Seed of the edge selection's random choices (keyframe k draws with seed + k)."""
@@ -230,7 +244,8 @@ class Config:
         if not 0.0 < self.map_overlap <= 1.0:
             raise ValueError("Config.map_overlap must be in (0, 1]")
         for name in ("active_per_keyframe", "activation_cell", "mapping_iterations",
-                     "activation_depth_reach", "map_max_keyframes", "map_candidates"):
+                     "activation_depth_reach", "map_max_keyframes", "map_candidates",
+                     "loop_lag"):
             if getattr(self, name) < 1:
                 raise ValueError(f"Config.{name} must be positive")
 

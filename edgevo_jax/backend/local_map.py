@@ -74,6 +74,7 @@ class _WindowKeyframe:
     rho_sensor: np.ndarray = field(default=None)  # type: ignore[assignment]
     activatable: np.ndarray = field(default=None)  # type: ignore[assignment]  # valid, continuous
     row_twist: np.ndarray = field(default=None)  # type: ignore[assignment]  # (6,) per row
+    key: object = None  # the caller's handle of the keyframe (``LocalMap.move``)
 
     def __post_init__(self) -> None:
         k = self.rho.shape[0]
@@ -210,11 +211,13 @@ class LocalMap:
         return Intrinsics(*(float(x) for x in self.intrinsics))
 
     def add_keyframe(self, pose: np.ndarray, edges: KeyframeEdges, frame: Frame,
-                     row_twist: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+                     row_twist: np.ndarray | None = None, *, key: object = None
+                     ) -> tuple[np.ndarray, dict]:
         """Take a new keyframe (pose T_w_k (4, 4); its tracked edges, numpy, at its middle
-        row's time; its frame; with a rolling shutter its motion per level-0 row (6,)) into
-        the window; returns its pose after refinement and the step's stats (whether it
-        refined; then inliers, tries and costs)."""
+        row's time; its frame; with a rolling shutter its motion per level-0 row (6,); ``key``:
+        the caller's handle of it, for ``move``) into the window; returns its pose after
+        refinement and the step's stats (whether it refined; then inliers, tries and
+        costs)."""
         cfg = self.config
         stats: dict = {"refined": False}
         if len(self.window) == cfg.window_size:
@@ -230,7 +233,8 @@ class LocalMap:
             pose=np.asarray(pose, np.float64), uv=uv, rho=rho, grad=grad, valid=valid,
             dist0=dist0, edge_map=EdgeMap(dist0, jax.device_put(frame.edge_map.code)),
             activatable=activatable,
-            row_twist=np.zeros(6) if row_twist is None else np.asarray(row_twist, np.float64))
+            row_twist=np.zeros(6) if row_twist is None else np.asarray(row_twist, np.float64),
+            key=key)
         if self.prior is not None:
             self.prior = jax.device_put(append_keyframe_to_prior(
                 self.prior, np.asarray(new.pose, np.float32)))
@@ -239,6 +243,24 @@ class LocalMap:
         if len(self.window) == cfg.window_size:
             stats.update(self._refine())
         return self.window[-1].pose, stats
+
+    def move(self, corrections: dict) -> None:
+        """Move keyframes of the window with a correction of the map (a loop closed): each
+        whose ``key`` is in ``corrections`` takes the pose C @ T_w_k (C = T_world_new_world_old
+        (4, 4)), and so does its linearisation point in the prior. The prior's information
+        stays as it was: it is in world-frame left twists, which a correction of a few
+        centimetres and degrees turns by as little (first-estimate Jacobians alike)."""
+        prior_poses = None if self.prior is None else np.array(self.prior.poses, np.float64)
+        for k, kf in enumerate(self.window):
+            C = corrections.get(kf.key)
+            if C is None:
+                continue
+            kf.pose = np.asarray(C, np.float64) @ kf.pose
+            if prior_poses is not None and k < len(prior_poses):
+                prior_poses[k] = np.asarray(C, np.float64) @ prior_poses[k]
+        if prior_poses is not None:
+            self.prior = self.prior._replace(poses=jax.device_put(
+                prior_poses.astype(np.asarray(self.prior.poses).dtype)))
 
     def warm_up(self) -> None:
         """Compile (or load from the compilation cache) and run once each jitted step of

@@ -28,6 +28,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     run.add_argument("--out", type=Path, default=None,
                      help="trajectory file (TUM format; default: <sequence>.traj.txt here)")
     run.add_argument("--stats", type=Path, default=None, help="write run statistics as JSON")
+    run.add_argument("--online", type=Path, default=None, metavar="FILE",
+                     help="also write the poses as each frame was reported, before the map "
+                          "moved them (closed loops, chains found again): TUM format; --out "
+                          "holds the corrected ones")
     run.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                      help="override a Config field (repeatable), e.g. --set max_edges=1024")
     run.add_argument("--max-frames", type=_positive_int, default=None, metavar="N",
@@ -104,7 +108,7 @@ def command(args: argparse.Namespace) -> int:
     from ..pipeline.run import run_sequence, summarise
 
     # every output is checked before anything is read or tracked (docs/errors.md)
-    for option in ("out", "stats", "rerun"):
+    for option in ("out", "stats", "rerun", "online"):
         if getattr(args, option) is not None:
             check_output(getattr(args, option), what=f"--{option}")
     config = Config().with_overrides(args.overrides)
@@ -137,6 +141,11 @@ def command(args: argparse.Namespace) -> int:
             recording.close()
         if hasattr(seq, "close"):  # a bag's reader, a live camera
             seq.close()
+    if args.online is not None:
+        from ..io import matrices_to_poses7, write_trajectory
+
+        online = run.online_poses if run.online_poses is not None else run.poses
+        write_trajectory(args.online, run.timestamps, matrices_to_poses7(online))
     stats = summarise(run, seq)
     if args.stats is not None:
         args.stats.write_text(json.dumps(json_safe(stats), indent=2) + "\n")

@@ -236,7 +236,7 @@ class KeyframeMap:
         if key in self._entries:
             self._entries[key] = dataclasses.replace(self._entries[key],
                                                      pose=np.asarray(pose, np.float64))
-            self._place(self._entries[key])
+            self._poses_kept[self._rows[key]] = pose  # its points, and so its depth, stay
 
     def note_share(self, key: int, share: float) -> None:
         """A frame was tracked against keyframe ``key`` with this inlier share."""

@@ -289,6 +289,8 @@ def decide(state: TrackerState, ev: Evidence, config: Config) -> Decision:
             guess = Guess(state.index - 1, made.keyframe.id, "made from a frame not verified")
         if guess is not None:
             made = made._replace(keyframe=dataclasses.replace(made.keyframe, guess=guess))
+        if lost is None:  # tracked against kf: the pose graph's edge from it
+            made = made._replace(keyframe=dataclasses.replace(made.keyframe, parent=kf.id))
         pose, new = made.keyframe.pose, _install(new, made.keyframe, config)
     new = dataclasses.replace(new, motion=new.motion.push(pose, facts.timestamp))
     plain = (lost is None and kf.id == start_id and made is None and res is ev.solve

@@ -56,6 +56,17 @@ class Ledger:
         return Correction(frames[0].index, index - 1, np.stack(poses))
 
 
+    def move(self, first: int, poses: np.ndarray) -> None:
+        """Frames ``first`` on took the poses ``poses`` (a loop closed): the frames kept here
+        take theirs."""
+        def moved(e: _Entry | None) -> _Entry | None:
+            if e is None or not first <= e.index < first + len(poses):
+                return e
+            return e._replace(pose=poses[e.index - first])
+        self._settled = moved(self._settled)
+        self._open = [moved(e) for e in self._open]
+
+
 def _filled(entries: list[_Entry]) -> list[np.ndarray]:
     """The entries' poses with every run of LOST ones between two that are not interpolated
     between those two (a run with no tracked frame before it keeps its poses)."""

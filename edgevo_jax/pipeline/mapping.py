@@ -66,7 +66,8 @@ class Mapper:
         self._pool = (ThreadPoolExecutor(1, thread_name_prefix="edgevo-map",
                                          initializer=lower_priority)
                       if self.lag > 0 else None)
-        self._pending: deque[tuple[int, object, Future]] = deque()  # (due frame, key, step)
+        #: (due frame, key, step, corrections of the map made while it was pending)
+        self._pending: deque[tuple[int, object, Future, list[dict]]] = deque()
         self.worker_ms: list[float] = []  # the window's time per keyframe, in order
         self.warm_since: float | None = None  # when ``warm_up`` started (perf_counter)
         self._warm: Future | None = None
@@ -92,17 +93,22 @@ class Mapper:
         motion per row, ``LocalMap.add_keyframe``)."""
         pose = np.asarray(pose, np.float64)
         if self._pool is None:
-            return self._mapped(key, self._step(pose, edges, frame, row_twist))
+            return self._mapped(key, self._step(key, pose, edges, frame, row_twist))
         self._pending.append((frame_index + self.lag, key,
-                              self._pool.submit(self._step, pose, edges, frame, row_twist)))
+                              self._pool.submit(self._step, key, pose, edges, frame,
+                                                row_twist), []))
         return None
 
     def due(self, frame_index: int | None) -> list[Mapped]:
         """The refinements due at ``frame_index`` (None: all handed over), oldest first."""
         out = []
         while self._pending and (frame_index is None or self._pending[0][0] <= frame_index):
-            _, key, future = self._pending.popleft()
-            out.append(self._mapped(key, future.result()))
+            _, key, future, moves = self._pending.popleft()
+            mapped = self._mapped(key, future.result())
+            for corrections in moves:  # a step solved before a move: in the old frame
+                if key in corrections:
+                    mapped = Mapped(key, corrections[key] @ mapped.pose, mapped.intrinsics)
+            out.append(mapped)
         return out
 
     def close(self) -> None:
@@ -111,10 +117,24 @@ class Mapper:
             self._pending.clear()
             self._pool.shutdown(wait=True, cancel_futures=True)
 
-    def _step(self, pose: np.ndarray, edges: KeyframeEdges, frame: Frame,
+    def move(self, corrections: dict) -> None:
+        """Move the window's keyframes (by the keys they were handed with) with a correction
+        of the map (``LocalMap.move``; key -> C = T_world_new_world_old): after the steps
+        handed over so far, before any later one (on the worker, in order; inline at once).
+        The refinements of the steps handed over so far, not taken yet, are in the old frame:
+        each is moved by its key's C when taken. Nothing waits for the worker."""
+        if self._pool is None:
+            self.local_map.move(corrections)
+            return
+        corrections = dict(corrections)
+        for entry in self._pending:
+            entry[3].append(corrections)
+        self._pool.submit(self.local_map.move, corrections)
+
+    def _step(self, key: object, pose: np.ndarray, edges: KeyframeEdges, frame: Frame,
               row_twist: np.ndarray | None) -> tuple[np.ndarray, Intrinsics, float]:
         t0 = time.perf_counter()
-        refined, _ = self.local_map.add_keyframe(pose, edges, frame, row_twist)
+        refined, _ = self.local_map.add_keyframe(pose, edges, frame, row_twist, key=key)
         return refined, self.local_map.camera, (time.perf_counter() - t0) * 1e3
 
     def _mapped(self, key: object, step) -> Mapped:

@@ -19,7 +19,7 @@ from ..config import Config
 from ..derive import readout_time
 from ..frontend.align import TrackResult
 from ..frontend.selection import KeyframeEdges
-from ..geometry import inverse_np
+from ..geometry import inverse_np, orthonormalise_np
 from ..hostmem import to_host
 from ..image.preprocess import Frame, preprocess
 from ..learn.params import Params
@@ -28,6 +28,7 @@ from . import decision
 from .effects import Solver, confirm, make_keyframe, search, warm_up
 from .inputs import check_frame, increasing, rigid_transform
 from .ledger import Ledger
+from .loops import Closed, Loops
 from .mapping import Mapped, Mapper
 from .relocalise import Places
 from .results import LOST, OK, WEAK, Correction, FrameResult, Refinement
@@ -108,6 +109,10 @@ class Odometry:
         self._mapper: Mapper | None = None  # made with the first keyframe (image size)
         self._places: Places | None = None  # the keyframe map, made with the first keyframe
         self._ledger = Ledger() if config.map else None  # frames the map may still move
+        #: the pose graph (``loops``), made with the map; each frame's keyframe and its pose
+        #: as corrected so far, which a closed loop moves
+        self._loops: Loops | None = None
+        self._frames: list[tuple[int | None, np.ndarray]] = []
         self._made = None  # the keyframe this frame made (``effects.Made``), for the map
         #: earlier poses moved into the map's frame (``Correction``), in order
         self.corrections: list[Correction] = []
@@ -223,12 +228,15 @@ class Odometry:
         self._given, self.warm_up_ms = given, warm_up_ms
 
     def close(self) -> None:
-        """Stop the local map's worker thread (refinements not taken yet are dropped) and
-        the keyframe map's (keyframes made are described first)."""
+        """Stop the local map's worker thread (refinements not taken yet are dropped), the
+        keyframe map's (keyframes made are described first) and the pose graph's (a solve not
+        taken yet is dropped)."""
         if self._mapper is not None:
             self._mapper.close()
         if self._places is not None:
             self._places.close()
+        if self._loops is not None:
+            self._loops.close()
 
     def __enter__(self) -> Odometry:
         return self
@@ -289,6 +297,31 @@ class Odometry:
         return self._places.map
 
     @property
+    def loop_stats(self) -> dict | None:
+        """The pose graph so far (None with ``Config.map`` or ``Config.loops`` off):
+        ``closed`` and ``rejected``, the loop edges kept and rejected (the two keyframes'
+        ids and timestamps, the measured T_older_newer, how the loop was found), and
+        ``solves``: each solve taken (its keyframes, loops kept and rejected, time on the
+        worker, ms), in order."""
+        if not (self.config.map and self.config.loops):
+            return None
+        loops = self._loops
+        if loops is None:
+            return {"closed": [], "rejected": [], "solves": []}
+
+        kmap = self._places.map
+
+        def edge(e) -> dict:
+            return {"older": e.i, "newer": e.j, "older_t": kmap[e.i].timestamp,
+                    "newer_t": kmap[e.j].timestamp, "measured": e.measured.tolist(),
+                    "note": e.note}
+        return {"closed": [edge(e) for e in loops.loops],
+                "rejected": [edge(e) for e in loops.rejected],
+                "solves": [{"keyframes": c.keyframes, "kept": len(c.kept),
+                            "rejected": len(c.rejected), "ms": c.ms, "finite": c.finite}
+                           for c in loops.solved]}
+
+    @property
     def mapping_worker_ms(self) -> list[float]:
         """The local window's time per keyframe taken so far (ms, in order)."""
         return [] if self._mapper is None else list(self._mapper.worker_ms)
@@ -315,9 +348,17 @@ class Odometry:
         carrying out the actions it asks for; its result and whether the state went on
         plainly (``decision.Decision.plain``)."""
         self._map_ms, self._moved = 0.0, False
+        closed = None
+        if self._loops is not None:  # the pose graph's results due now, then its next solve
+            closed = self._loops.due(self.state.index)
+            if closed is not None:
+                self._close(closed)
+            self._loops.found(self.state.index)
+            self._loops.submit(self._places.map, self.state.index)
         due = self._due(self.state.index + 1)
         self.state = decision.begin_frame(self.state, due)
-        if due and res is not None:  # refined keyframe poses: the prediction moved with them
+        if (due or closed is not None) and res is not None:  # keyframe poses moved: the
+            # prediction moved with them
             pending = dataclasses.replace(pending, predicted=self.state.motion.predict(
                 pending.prior))
         frame = pending.frame
@@ -332,8 +373,8 @@ class Odometry:
                 None if self._mapper is None else self._map_ms, (now - pending.t_submit) * 1e3))
             d = decision.decide(self.state, ev, self.config)
             if not d.actions:
-                self.state = d.state
-                self._placed(d, frame)
+                before, self.state = self.state, d.state
+                self._placed(d, frame, before)
                 return d.result, d.plain
             ev = self._act(d.actions[0], ev, pending)
 
@@ -367,6 +408,8 @@ class Odometry:
                 self._mapper.warm_up()
         if self.config.map and self._places is None:
             self._places = Places(self.config, self.intrinsics, frame.shape)
+            if self.config.loops:
+                self._loops = Loops(self.config)
         made = self._made = make_keyframe(self._solver, self._mapper, frame, action,
                                           state.index)
         if made is None:
@@ -383,12 +426,14 @@ class Odometry:
         return dataclasses.replace(ev, made_asked=True,
                                    made=decision.NewKeyframe(made.keyframe, made.select_ms))
 
-    def _placed(self, d: decision.Decision, frame: Frame) -> None:
-        """The map's part of a concluded frame: the keyframe it made joins the map, its share
-        counts for its keyframe, the earlier frames it settles may move (``corrections``:
-        a guessed chain it ties to the map, LOST frames filled in; ``ledger``), and a
-        ``Tie`` out of a guessed chain starts the window again (its keyframes are in the
-        chain's frame)."""
+    def _placed(self, d: decision.Decision, frame: Frame, before: decision.TrackerState
+                ) -> None:
+        """The map's part of a concluded frame (``before``: the state it was tracked from):
+        the keyframe it made joins the map (and the pose graph, which looks for a loop it
+        closes: ``_find_loop``), its share counts for its keyframe, the earlier frames it
+        settles may move (``corrections``: a guessed chain it ties to the map, LOST frames
+        filled in; ``ledger``), and a ``Tie`` out of a guessed chain starts the window again
+        (its keyframes are in the chain's frame)."""
         made, self._made = self._made, None
         if self._ledger is None:
             return
@@ -398,10 +443,21 @@ class Odometry:
         moved = self._ledger.record(self.state.index - 1, result, settled=settled, tie=tie)
         if moved is not None:
             self.corrections.append(moved)
+        if self._loops is not None:
+            self._frames.append((None if kf is None else kf.id, result.pose))
+            if moved is not None:
+                self._frames[moved.first:moved.last + 1] = [
+                    (k, p) for (k, _), p in zip(self._frames[moved.first:moved.last + 1],
+                                                moved.poses, strict=True)]
         if self._places is None:
             return
         if made is not None and result.keyframe is not None:
             self._places.add(kf, made.host_edges, frame, self.intrinsics)
+            if self._loops is not None:
+                self._loops.keyframe(kf.id, kf.parent, result.covariance)
+                if kf.id not in self._handed:  # no window beside tracking: its pose is final
+                    self._loops.measure(kf.id, self._places.map)
+                self._find_loop(kf, frame, before)
         if result.state == OK and result.inlier_share is not None:
             self._places.note_share(kf.id, result.inlier_share)
         if tie is not None:
@@ -409,6 +465,46 @@ class Odometry:
             if tie.restart and self._mapper is not None:
                 self._mapper.close()
                 self._mapper, self._handed = None, {}
+
+    def _find_loop(self, kf: decision.Keyframe, frame: Frame,
+                   before: decision.TrackerState) -> None:
+        """Look for a loop the new keyframe ``kf`` closes (``Places.loop``: an older keyframe
+        of the map that the pose graph does not tie to it sees it, and its frame aligns to
+        it), beside tracking; what it finds joins the graph ``loop_lag`` frames later."""
+        if kf.guess is not None or not self._loops.searches():
+            return
+        verify = self._places.loop(self._solver, before, frame, kf, self._loops.tied(kf.id),
+                                   kf.timestamp)
+        if verify is not None:
+            self._loops.search(kf.id, verify, self.state.index)
+
+    def _close(self, closed: Closed) -> None:
+        """Take a solved pose graph: each keyframe of the map moves (``Loops.corrections``),
+        and with it the tracker's records of it, the window's (refinements on their way are
+        moved as they come: ``Mapper.move``) and every frame tracked from it (one
+        ``Correction``)."""
+        kmap = self._places.map
+        moves = self._loops.corrections(closed, kmap.ids)
+        if not moves:
+            return
+        for key, C in moves.items():
+            kmap.set_pose(key, orthonormalise_np(C @ kmap[key].pose))
+        held = [k for k in (self.state.keyframe, *self.state.previous)
+                if k is not None and k.id in moves]
+        self.state = decision.refine(self.state, [
+            Mapped(k.id, orthonormalise_np(moves[k.id] @ k.pose), None) for k in held])
+        if self._mapper is not None:
+            self._mapper.move(moves)
+        first = next((i for i, (k, _) in enumerate(self._frames) if k in moves), None)
+        if first is not None:
+            keys = [k for k, _ in self._frames[first:]]
+            eye = np.eye(4)
+            poses = np.stack([moves.get(k, eye) for k in keys]) @ np.stack(
+                [p for _, p in self._frames[first:]])
+            self._frames[first:] = list(zip(keys, poses, strict=True))
+            self.corrections.append(Correction(first, len(self._frames) - 1, poses,
+                                               reason="loop"))
+            self._ledger.move(first, poses)
 
     def _due(self, frame_index: int | None) -> list[Mapped]:
         """The window's refinements due at ``frame_index`` (None: all handed over), waited
@@ -431,6 +527,8 @@ class Odometry:
         self.refinements.append(Refinement(timestamp, index, before, m.pose))
         if self._places is not None:
             self._places.set_pose(m.key, m.pose)
+            if self._loops is not None:
+                self._loops.measure(m.key, self._places.map)
         if self.config.mapping_intrinsics and tuple(m.intrinsics) != tuple(self.intrinsics):
             self._solver.intrinsics = m.intrinsics
             self._moved = True  # solves made with the old ones are stale

@@ -38,9 +38,11 @@ class Keyframe:
     edges in use and the level-0 inliers of the frames tracked against it. ``guess``: the
     chain made at a guess it belongs to (None: tied to the map); ``since``: when it became
     the current keyframe (s; None: at its timestamp; a keyframe of the map taking over
-    later counts its interval from then). ``edges`` (device arrays), ``frame`` (its
-    ``Frame``; None for a keyframe taken from the map) and ``keypoints`` (by kind, detected
-    when recovery first needs them) are the driver's; the decision never reads them."""
+    later counts its interval from then); ``parent``: the keyframe the frame it was made
+    from was tracked against (None: the first, or one made at a loss's guess). ``edges``
+    (device arrays), ``frame`` (its ``Frame``; None for a keyframe taken from the map) and
+    ``keypoints`` (by kind, detected when recovery first needs them) are the driver's; the
+    decision never reads them."""
 
     id: int
     timestamp: float
@@ -49,6 +51,7 @@ class Keyframe:
     inlier_counts: tuple[int, ...] = ()
     guess: Guess | None = None
     since: float | None = None
+    parent: int | None = None
     edges: Any = field(default=None, compare=False, repr=False)
     frame: Any = field(default=None, compare=False, repr=False)
     keypoints: dict = field(default_factory=dict, compare=False, repr=False)

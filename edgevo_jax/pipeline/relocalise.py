@@ -26,6 +26,8 @@ geometry only): when it is computed never changes what the map holds.
 
 from __future__ import annotations
 
+import copy
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 
 import jax
@@ -38,7 +40,15 @@ from ..frontend.features import detect, landmark_pose, refine_pose
 from ..frontend.selection import KeyframeEdges
 from ..geometry import inverse_np, rotation_angle_np
 from ..image.preprocess import Frame
-from ..map import KeyframeMap, MapKeyframe, describe, edge_points, encode, make_ferns
+from ..map import (
+    Candidate,
+    KeyframeMap,
+    MapKeyframe,
+    describe,
+    edge_points,
+    encode,
+    make_ferns,
+)
 from .decision import (
     Keyframe,
     Placed,
@@ -171,48 +181,95 @@ class Places:
 
     def _second(self, kf: Keyframe, res, frame: Frame, align, usable,
                 reference: float | None) -> int | None:
-        """A second keyframe of the map that confirms the pose ``res`` gives against ``kf``:
-        one of the two most covisible with it, aligned from that pose, usable, in the basin,
-        over the lost ratio of its own standard and placing the frame within
-        ``SECOND_M``, ``SECOND_DEG`` of the same world pose; its id, or None."""
-        config = self.config
-        pose = kf.pose @ inverse_np(np.asarray(res.T_c_k, np.float64))
-        near = sorted(self.map.covisible(kf.id).items(), key=lambda kv: -kv[1])
-        for key, _ in [kv for kv in near if self.map[kv[0]].anchored][:2]:
-            entry = self.map[key]
-            out = align(_keyframe(entry), frame, inverse_np(pose) @ entry.pose)
-            standard = entry.share or reference or 1.0
-            if not (usable(out) and float(out.moved) <= basin_px(config)
-                    and inlier_share(out) >= config.lost_share_ratio * standard):
-                continue
-            D = inverse_np(pose) @ entry.pose @ inverse_np(np.asarray(out.T_c_k, np.float64))
-            if np.linalg.norm(D[:3, 3]) <= SECOND_M \
-                    and np.degrees(rotation_angle_np(D)) <= SECOND_DEG:
-                return key
-        return None
+        """A second keyframe of the map that confirms the pose ``res`` gives against ``kf``
+        (``_confirmed`` by one of ``_confirmers(kf.id)``); its id, or None."""
+        return _confirmed(kf, res, self._confirmers(kf.id), frame, align, usable, reference,
+                          self.config)
+
+    def _confirmers(self, key: int, exclude=()) -> list[tuple[Keyframe, float | None]]:
+        """The two anchored keyframes (not in ``exclude``) most covisible with keyframe
+        ``key``, as ``Keyframe``s with their standard inlier share (as they are now)."""
+        near = sorted(self.map.covisible(key).items(), key=lambda kv: -kv[1])
+        return [(_keyframe(self.map[k]), self.map[k].share) for k, _ in
+                [kv for kv in near if self.map[kv[0]].anchored and kv[0] not in exclude][:2]]
 
     def revisit(self, solver: Solver, state: TrackerState, frame: Frame, ask: Revisit,
                 timestamp: float) -> Placed | None:
         """An older keyframe of the map that takes over from a new one (module doc), or
         None. Geometry only: it waits for no description."""
-        config = self.config
         # a place left and seen again: not one the recent keyframes still see
         recent = set(ask.exclude)
         seen = recent.union(*(self.map.covisible(k) for k in recent if k in self.map))
-        candidates = self.map.overlapping(ask.pose, k=2, min_overlap=config.map_overlap,
-                                          exclude=seen)
+        found = self._seen_from(solver, state, frame, ask.pose, seen, timestamp)
+        if found is None:
+            return None
+        kf, out, c = found
+        return Placed(kf, out, f"revisit: keyframe {c.id} takes over (predicted overlap "
+                      f"{c.score:.2f}, inlier share {inlier_share(out):.2f})")
+
+    def loop(self, solver: Solver, state: TrackerState, frame: Frame, kf: Keyframe,
+             exclude: set[int], timestamp: float) -> Callable[[], Placed | None] | None:
+        """The search for an older keyframe of the map, not in ``exclude``, that sees the new
+        keyframe ``kf`` (made from ``frame``, after the frames of ``state``) at its pose
+        (``loops``): verified as ``revisit`` verifies, and confirmed as a doubtful frame found
+        again is (``_confirmed``: a keyframe covisible with the old one, not in ``exclude``,
+        places the frame within ``SECOND_M``, ``SECOND_DEG`` of the loop's pose). The
+        candidates are chosen now; what is returned aligns the frame to them and reads
+        nothing that changes (it may run on another thread): the solve of the frame against
+        the first that passes (``result.T_c_k``: T_kf_old), or None. None: no candidate."""
+        candidates = self._candidates(kf.pose, exclude)
         if not candidates:
             return None
+        confirmers = {c.id: self._confirmers(c.id, exclude) for _, c in candidates}
+        solver = copy.copy(solver)  # its intrinsics as they are now
+
+        def verify() -> Placed | None:
+            align, usable = aligner(solver, state, frame, timestamp)
+            reference = reference_share(state, self.config)
+            for old, c in candidates:
+                found = self._verified(solver, state, frame, kf.pose, [(old, c)], timestamp)
+                if found is None:
+                    continue
+                out = found[1]
+                other = _confirmed(old, out, confirmers[c.id], frame, align, usable, reference,
+                                   self.config)
+                if other is not None:
+                    return Placed(old, out, f"loop: keyframe {kf.id} to keyframe {c.id} "
+                                  f"(predicted overlap {c.score:.2f}, inlier share "
+                                  f"{inlier_share(out):.2f}, confirmed by keyframe {other})")
+            return None
+        return verify
+
+    def _seen_from(self, solver: Solver, state: TrackerState, frame: Frame, pose: np.ndarray,
+                   exclude, timestamp: float):
+        """The first of the two anchored keyframes (not in ``exclude``) that a camera at
+        ``pose`` (T_world_cam) sees best (``_candidates``) that the frame aligns to from
+        there (``_verified``); (its ``Keyframe``, the solve, its ``Candidate``) or None."""
+        candidates = self._candidates(pose, exclude)
+        if not candidates:
+            return None
+        return self._verified(solver, state, frame, pose, candidates, timestamp)
+
+    def _candidates(self, pose: np.ndarray, exclude) -> list[tuple[Keyframe, Candidate]]:
+        """The two anchored keyframes (not in ``exclude``) a camera at ``pose`` (T_world_cam)
+        sees best, with a predicted overlap of at least ``map_overlap``, as ``Keyframe``s
+        (their poses as they are now)."""
+        return [(_keyframe(self.map[c.id]), c) for c in self.map.overlapping(
+            pose, k=2, min_overlap=self.config.map_overlap, exclude=exclude)]
+
+    def _verified(self, solver: Solver, state: TrackerState, frame: Frame, pose: np.ndarray,
+                  candidates: list[tuple[Keyframe, Candidate]], timestamp: float):
+        """The first candidate the frame, at ``pose``, aligns to: usable, within the basin
+        and not under the doubt ratio of the recent share; (its ``Keyframe``, the solve, its
+        ``Candidate``) or None."""
+        config = self.config
         align, usable = aligner(solver, state, frame, timestamp)
         reference = reference_share(state, config)
-        for c in candidates:
-            entry = self.map[c.id]
-            kf = _keyframe(entry)
-            out = align(kf, frame, inverse_np(ask.pose) @ entry.pose)
+        for kf, c in candidates:
+            out = align(kf, frame, inverse_np(pose) @ kf.pose)
             if usable(out) and float(out.moved) <= basin_px(config) \
                     and not under(out, reference, config.doubt_share_ratio):
-                return Placed(kf, out, f"revisit: keyframe {c.id} takes over (predicted "
-                              f"overlap {c.score:.2f}, inlier share {inlier_share(out):.2f})")
+                return kf, out, c
         return None
 
     # -- internals -------------------------------------------------------------------------
@@ -223,6 +280,26 @@ class Places:
             appearance = future.result()
             self.map.describe(key, appearance.landmarks, appearance.code)
         self._pending.clear()
+
+
+def _confirmed(kf: Keyframe, res, confirmers: list[tuple[Keyframe, float | None]],
+               frame: Frame, align, usable, reference: float | None, config: Config
+               ) -> int | None:
+    """The first of ``confirmers`` (keyframe, its standard share) that confirms the pose
+    ``res`` gives the frame against ``kf``: aligned from that pose, usable, in the basin, over
+    the lost ratio of its own standard and placing the frame within ``SECOND_M``,
+    ``SECOND_DEG`` of the same world pose; its id, or None."""
+    pose = kf.pose @ inverse_np(np.asarray(res.T_c_k, np.float64))
+    for other, share in confirmers:
+        out = align(other, frame, inverse_np(pose) @ other.pose)
+        standard = share or reference or 1.0
+        if not (usable(out) and float(out.moved) <= basin_px(config)
+                and inlier_share(out) >= config.lost_share_ratio * standard):
+            continue
+        D = inverse_np(pose) @ other.pose @ inverse_np(np.asarray(out.T_c_k, np.float64))
+        if np.linalg.norm(D[:3, 3]) <= SECOND_M and np.degrees(rotation_angle_np(D)) <= SECOND_DEG:
+            return other.id
+    return None
 
 
 def _keyframe(entry: MapKeyframe) -> Keyframe:

@@ -45,15 +45,18 @@ class FrameResult:
 
 @dataclass(frozen=True)
 class Correction:
-    """Earlier poses moved when the keyframe map placed a frame: frames ``first`` to
-    ``last`` (indices, inclusive) take ``poses`` ((last - first + 1, 4, 4) T_world_cam): a
-    chain of keyframes made at a guess moved into the map's frame, and LOST frames filled
-    in between the tracked frames on either side. The frame after ``last`` is the one the map
-    placed; states and reasons stay as they were reported."""
+    """Earlier poses moved: frames ``first`` to ``last`` (indices, inclusive) take ``poses``
+    ((last - first + 1, 4, 4) T_world_cam). ``reason`` ``"tie"``: the keyframe map placed
+    the frame after ``last``, a chain of keyframes made at a guess moved into the map's
+    frame with it, and LOST frames were filled in between the tracked frames on either
+    side; ``"loop"``: a loop was closed, and the frames tracked from the keyframes the pose
+    graph moved moved with them (``last``: the last frame concluded). States and reasons
+    stay as they were reported."""
 
     first: int
     last: int
     poses: np.ndarray
+    reason: str = "tie"
 
 
 @dataclass(frozen=True)

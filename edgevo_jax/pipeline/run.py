@@ -50,10 +50,13 @@ class RunResult(FrameResults):
     decode times (ms); the start-up (s): from the start (``run_sequence``'s ``started``) to
     the first pose, which includes ``warm_up_s``, the tracker's compiling or loading of every
     program the run needs (``effects.warm_up``); the local window's time per keyframe on
-    its worker (ms); ``corrections``: earlier poses moved into the keyframe map's frame
-    (``results.Correction``, applied to ``results`` and the trajectory file at the end of
-    the run); the map's keyframes, bytes and the first keyframe it refused at its cap (None
-    each with ``Config.map`` off; ``map_full_at`` None below the cap)."""
+    its worker (ms); ``corrections``: earlier poses moved into the keyframe map's frame or
+    by a closed loop (``results.Correction``, applied to ``results`` and the trajectory file
+    at the end of the run), and ``online_poses`` (N, 4, 4): the poses as each frame was
+    reported, before them (None when none moved); the map's keyframes, bytes and the first
+    keyframe it refused at its cap (None each with ``Config.map`` off; ``map_full_at`` None
+    below the cap); ``loops``: the loops closed and rejected and the pose graph's solves
+    (``Odometry.loop_stats``; None with ``Config.loops`` or the map off)."""
 
     results: list[FrameResult] = field(default_factory=list)
     frame_ms: list[float] = field(default_factory=list)
@@ -68,6 +71,8 @@ class RunResult(FrameResults):
     map_keyframes: int | None = None
     map_bytes: int | None = None
     map_full_at: int | None = None
+    online_poses: np.ndarray | None = None
+    loops: dict | None = None
 
     def summary_fields(self) -> dict:
         """Timing statistics and the per-frame record (``per_frame_record``) for
@@ -103,6 +108,13 @@ class RunResult(FrameResults):
                           "revisits": sum(p.startswith("revisit") for p in placed),
                           "frames_moved": len({i for c in self.corrections
                                                for i in range(c.first, c.last + 1)})}
+            if self.loops is not None:
+                out["map"]["loops"] = {
+                    "closed": len(self.loops["closed"]),
+                    "rejected": len(self.loops["rejected"]),
+                    "pose_graph_ms": _describe([s["ms"] for s in self.loops["solves"]]),
+                    "largest_graph_keyframes": max((s["keyframes"]
+                                                    for s in self.loops["solves"]), default=0)}
         out["per_frame"] = [per_frame_record(r) for r in self.results]
         return out
 
@@ -232,6 +244,9 @@ def _take_map(run: RunResult, odo: Odometry) -> None:
     if kmap is not None:
         run.map_keyframes, run.map_bytes, run.map_full_at = len(kmap), kmap.nbytes, kmap.full_at
     run.corrections = list(odo.corrections)
+    run.loops = odo.loop_stats
+    if run.corrections:
+        run.online_poses = run.poses
     for c in run.corrections:
         for i, pose in zip(range(c.first, min(c.last + 1, len(run.results))), c.poses,
                            strict=False):
