@@ -55,7 +55,6 @@ class Ledger:
             return None
         return Correction(frames[0].index, index - 1, np.stack(poses))
 
-
     def move(self, first: int, poses: np.ndarray) -> None:
         """Frames ``first`` on took the poses ``poses`` (a loop closed): the frames kept here
         take theirs."""

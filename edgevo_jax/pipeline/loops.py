@@ -40,6 +40,7 @@ from ..backend import pose_graph
 from ..config import Config
 from ..geometry import inverse_np, log_np, orthonormalise_np
 from .mapping import lower_priority
+from .results import Correction
 
 if TYPE_CHECKING:
     from .relocalise import Placed
@@ -109,6 +110,8 @@ class Loops:
         self.solved: list[Closed] = []  # every solve taken, in order
         self._warmed: set[int] = set()  # node slots whose program is compiled (or asked)
         self._count = 0  # keyframes told
+        #: each concluded frame's keyframe and its pose as corrected so far
+        self._frames: list[tuple[int | None, np.ndarray]] = []
 
     # -- what the tracker tells it --------------------------------------------------------
     def keyframe(self, key: int, parent: int | None, covariance: np.ndarray | None) -> None:
@@ -120,6 +123,44 @@ class Loops:
             return
         self._odometry[key] = Edge(parent, key, None, information(covariance))
         self._link(parent, key)
+
+    def frame(self, key: int | None, pose: np.ndarray, moved: Correction | None) -> None:
+        """A frame was concluded, tracked from keyframe ``key`` at ``pose`` (T_world_cam);
+        ``moved``: the earlier frames the map moved with it, if any (``Ledger.record``)."""
+        self._frames.append((key, pose))
+        if moved is not None:
+            span = range(moved.first, moved.last + 1)
+            self._frames[span.start:span.stop] = [
+                (self._frames[i][0], p) for i, p in zip(span, moved.poses, strict=True)]
+
+    def moved_frames(self, moves: dict[int, np.ndarray]) -> Correction | None:
+        """The frames the keyframes' corrections ``moves`` (id -> C) move: from the first
+        tracked from a moved keyframe to the last concluded, each by its keyframe's C (one
+        ``Correction`` "loop"; None when none moves). They are recorded as moved."""
+        first = next((i for i, (k, _) in enumerate(self._frames) if k in moves), None)
+        if first is None:
+            return None
+        keys = [k for k, _ in self._frames[first:]]
+        eye = np.eye(4)
+        poses = np.stack([moves.get(k, eye) for k in keys]) @ np.stack(
+            [p for _, p in self._frames[first:]])
+        self._frames[first:] = list(zip(keys, poses, strict=True))
+        return Correction(first, len(self._frames) - 1, poses, reason="loop")
+
+    def stats(self, kmap) -> dict:
+        """``closed`` and ``rejected``, the loop edges kept and rejected (the two keyframes'
+        ids and timestamps in ``kmap``, the measured T_older_newer, how the loop was found),
+        and ``solves``: each solve taken (its keyframes, loops kept and rejected, time on the
+        worker, ms, whether it was finite), in order."""
+        def edge(e: Edge) -> dict:
+            return {"older": e.i, "newer": e.j, "older_t": kmap[e.i].timestamp,
+                    "newer_t": kmap[e.j].timestamp, "measured": e.measured.tolist(),
+                    "note": e.note}
+        return {"closed": [edge(e) for e in self.loops],
+                "rejected": [edge(e) for e in self.rejected],
+                "solves": [{"keyframes": c.keyframes, "kept": len(c.kept),
+                            "rejected": len(c.rejected), "ms": c.ms, "finite": c.finite}
+                           for c in self.solved]}
 
     def measure(self, key: int, poses) -> None:
         """Keyframe ``key``'s pose is final (refined): its edge from its parent takes their

@@ -109,10 +109,7 @@ class Odometry:
         self._mapper: Mapper | None = None  # made with the first keyframe (image size)
         self._places: Places | None = None  # the keyframe map, made with the first keyframe
         self._ledger = Ledger() if config.map else None  # frames the map may still move
-        #: the pose graph (``loops``), made with the map; each frame's keyframe and its pose
-        #: as corrected so far, which a closed loop moves
-        self._loops: Loops | None = None
-        self._frames: list[tuple[int | None, np.ndarray]] = []
+        self._loops: Loops | None = None  # the pose graph (``loops``), made with the map
         self._made = None  # the keyframe this frame made (``effects.Made``), for the map
         #: earlier poses moved into the map's frame (``Correction``), in order
         self.corrections: list[Correction] = []
@@ -298,28 +295,13 @@ class Odometry:
 
     @property
     def loop_stats(self) -> dict | None:
-        """The pose graph so far (None with ``Config.map`` or ``Config.loops`` off):
-        ``closed`` and ``rejected``, the loop edges kept and rejected (the two keyframes'
-        ids and timestamps, the measured T_older_newer, how the loop was found), and
-        ``solves``: each solve taken (its keyframes, loops kept and rejected, time on the
-        worker, ms), in order."""
+        """The pose graph so far (``Loops.stats``; None with ``Config.map`` or
+        ``Config.loops`` off)."""
         if not (self.config.map and self.config.loops):
             return None
-        loops = self._loops
-        if loops is None:
+        if self._loops is None:
             return {"closed": [], "rejected": [], "solves": []}
-
-        kmap = self._places.map
-
-        def edge(e) -> dict:
-            return {"older": e.i, "newer": e.j, "older_t": kmap[e.i].timestamp,
-                    "newer_t": kmap[e.j].timestamp, "measured": e.measured.tolist(),
-                    "note": e.note}
-        return {"closed": [edge(e) for e in loops.loops],
-                "rejected": [edge(e) for e in loops.rejected],
-                "solves": [{"keyframes": c.keyframes, "kept": len(c.kept),
-                            "rejected": len(c.rejected), "ms": c.ms, "finite": c.finite}
-                           for c in loops.solved]}
+        return self._loops.stats(self._places.map)
 
     @property
     def mapping_worker_ms(self) -> list[float]:
@@ -430,7 +412,7 @@ class Odometry:
                 ) -> None:
         """The map's part of a concluded frame (``before``: the state it was tracked from):
         the keyframe it made joins the map (and the pose graph, which looks for a loop it
-        closes: ``_find_loop``), its share counts for its keyframe, the earlier frames it
+        closes), its share counts for its keyframe, the earlier frames it
         settles may move (``corrections``: a guessed chain it ties to the map, LOST frames
         filled in; ``ledger``), and a ``Tie`` out of a guessed chain starts the window again
         (its keyframes are in the chain's frame)."""
@@ -444,11 +426,7 @@ class Odometry:
         if moved is not None:
             self.corrections.append(moved)
         if self._loops is not None:
-            self._frames.append((None if kf is None else kf.id, result.pose))
-            if moved is not None:
-                self._frames[moved.first:moved.last + 1] = [
-                    (k, p) for (k, _), p in zip(self._frames[moved.first:moved.last + 1],
-                                                moved.poses, strict=True)]
+            self._loops.frame(None if kf is None else kf.id, result.pose, moved)
         if self._places is None:
             return
         if made is not None and result.keyframe is not None:
@@ -457,7 +435,12 @@ class Odometry:
                 self._loops.keyframe(kf.id, kf.parent, result.covariance)
                 if kf.id not in self._handed:  # no window beside tracking: its pose is final
                     self._loops.measure(kf.id, self._places.map)
-                self._find_loop(kf, frame, before)
+                if kf.guess is None and self._loops.searches():  # a loop it closes: beside
+                    # tracking, joining the graph ``loop_lag`` frames later (``Places.loop``)
+                    verify = self._places.loop(self._solver, before, frame, kf,
+                                               self._loops.tied(kf.id), kf.timestamp)
+                    if verify is not None:
+                        self._loops.search(kf.id, verify, self.state.index)
         if result.state == OK and result.inlier_share is not None:
             self._places.note_share(kf.id, result.inlier_share)
         if tie is not None:
@@ -465,18 +448,6 @@ class Odometry:
             if tie.restart and self._mapper is not None:
                 self._mapper.close()
                 self._mapper, self._handed = None, {}
-
-    def _find_loop(self, kf: decision.Keyframe, frame: Frame,
-                   before: decision.TrackerState) -> None:
-        """Look for a loop the new keyframe ``kf`` closes (``Places.loop``: an older keyframe
-        of the map that the pose graph does not tie to it sees it, and its frame aligns to
-        it), beside tracking; what it finds joins the graph ``loop_lag`` frames later."""
-        if kf.guess is not None or not self._loops.searches():
-            return
-        verify = self._places.loop(self._solver, before, frame, kf, self._loops.tied(kf.id),
-                                   kf.timestamp)
-        if verify is not None:
-            self._loops.search(kf.id, verify, self.state.index)
 
     def _close(self, closed: Closed) -> None:
         """Take a solved pose graph: each keyframe of the map moves (``Loops.corrections``),
@@ -495,16 +466,10 @@ class Odometry:
             Mapped(k.id, orthonormalise_np(moves[k.id] @ k.pose), None) for k in held])
         if self._mapper is not None:
             self._mapper.move(moves)
-        first = next((i for i, (k, _) in enumerate(self._frames) if k in moves), None)
-        if first is not None:
-            keys = [k for k, _ in self._frames[first:]]
-            eye = np.eye(4)
-            poses = np.stack([moves.get(k, eye) for k in keys]) @ np.stack(
-                [p for _, p in self._frames[first:]])
-            self._frames[first:] = list(zip(keys, poses, strict=True))
-            self.corrections.append(Correction(first, len(self._frames) - 1, poses,
-                                               reason="loop"))
-            self._ledger.move(first, poses)
+        frames = self._loops.moved_frames(moves)
+        if frames is not None:
+            self.corrections.append(frames)
+            self._ledger.move(frames.first, frames.poses)
 
     def _due(self, frame_index: int | None) -> list[Mapped]:
         """The window's refinements due at ``frame_index`` (None: all handed over), waited

@@ -227,7 +227,7 @@ class Places:
             align, usable = aligner(solver, state, frame, timestamp)
             reference = reference_share(state, self.config)
             for old, c in candidates:
-                found = self._verified(solver, state, frame, kf.pose, [(old, c)], timestamp)
+                found = self._verified(align, usable, reference, frame, kf.pose, [(old, c)])
                 if found is None:
                     continue
                 out = found[1]
@@ -248,7 +248,9 @@ class Places:
         candidates = self._candidates(pose, exclude)
         if not candidates:
             return None
-        return self._verified(solver, state, frame, pose, candidates, timestamp)
+        align, usable = aligner(solver, state, frame, timestamp)
+        return self._verified(align, usable, reference_share(state, self.config), frame, pose,
+                              candidates)
 
     def _candidates(self, pose: np.ndarray, exclude) -> list[tuple[Keyframe, Candidate]]:
         """The two anchored keyframes (not in ``exclude``) a camera at ``pose`` (T_world_cam)
@@ -257,14 +259,13 @@ class Places:
         return [(_keyframe(self.map[c.id]), c) for c in self.map.overlapping(
             pose, k=2, min_overlap=self.config.map_overlap, exclude=exclude)]
 
-    def _verified(self, solver: Solver, state: TrackerState, frame: Frame, pose: np.ndarray,
-                  candidates: list[tuple[Keyframe, Candidate]], timestamp: float):
-        """The first candidate the frame, at ``pose``, aligns to: usable, within the basin
-        and not under the doubt ratio of the recent share; (its ``Keyframe``, the solve, its
-        ``Candidate``) or None."""
+    def _verified(self, align, usable, reference: float | None, frame: Frame, pose: np.ndarray,
+                  candidates: list[tuple[Keyframe, Candidate]]):
+        """The first candidate the frame, at ``pose``, aligns to (``align``, ``usable``:
+        ``effects.aligner``'s): usable, within the basin and not under the doubt ratio of
+        the recent share ``reference``; (its ``Keyframe``, the solve, its ``Candidate``) or
+        None."""
         config = self.config
-        align, usable = aligner(solver, state, frame, timestamp)
-        reference = reference_share(state, config)
         for kf, c in candidates:
             out = align(kf, frame, inverse_np(pose) @ kf.pose)
             if usable(out) and float(out.moved) <= basin_px(config) \
