@@ -30,11 +30,11 @@ from .datasets.tum import load_sequence
 from .determinism import enable_batch_exact
 from .geometry import Pose
 from .metrics import ate, rpe
-from .pipeline.batch import evaluate
-from .pipeline.odometry import FrameResult, Odometry
-from .pipeline.pair import AlignResult, align
-from .pipeline.run import run_sequence as run
-from .pipeline.run import summarise
+from .runs.batch import evaluate
+from .runs.pair import AlignResult, align
+from .runs.run import run_sequence as run
+from .runs.run import summarise
+from .tracking.odometry import FrameResult, Odometry
 
 __all__ = ["AlignResult", "Camera", "Config", "FrameResult", "Intrinsics", "Odometry", "Pose",
            "align", "ate", "enable_batch_exact", "evaluate", "load_sequence", "rpe", "run",

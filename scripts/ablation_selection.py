@@ -12,7 +12,7 @@ What is run: for each sequence, ``selection=all`` once (every culled edge; deter
 no seeds and no budget), and every stochastic mode (``spg``: stochastic partition greedy,
 ``greedy``: stochastic greedy without partitions, ``random``: a uniform subset) for every
 edge budget (``Config.num_edges``) and every seed (``Config.seed``), each through
-``edgevo_jax.pipeline.run.run_sequence`` (the pipelined runner, no progress bar) and ``summarise``.
+``edgevo_jax.runs.run.run_sequence`` (the pipelined runner, no progress bar) and ``summarise``.
 All other settings are the ``Config`` defaults. The seed rounds are the outer loop, so a
 drift in machine load spreads over every configuration instead of hitting one.
 
@@ -66,12 +66,12 @@ from edgevo_jax.datasets.tum import SHARED_CLIPS as DEFAULT_CLIPS
 from edgevo_jax.datasets.tum import SHARED_TUM, TumSequence, load_sequence
 from edgevo_jax.frontend.selection import candidates, select
 from edgevo_jax.image.preprocess import preprocess, to_gray
-from edgevo_jax.pipeline.measure import finite_stats
-from edgevo_jax.pipeline.run import run_sequence, summarise
 from edgevo_jax.programs import enable_cache
 from edgevo_jax.provenance import load_average, machine_info
 from edgevo_jax.reports import fmt, int_list, write_json
 from edgevo_jax.reports import markdown_table as md_table
+from edgevo_jax.runs.measure import finite_stats
+from edgevo_jax.runs.run import run_sequence, summarise
 from edgevo_jax.viz import plot_ablation, plot_selection_overlay
 
 REPO_ROOT = Path(__file__).resolve().parents[1]

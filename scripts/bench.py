@@ -10,7 +10,7 @@ Methods:
 
 - ``edgevo`` (the default ``Config``), ``edgevo_all`` (``selection=all``), ``edgevo_nomap``
   (``mapping=false``: no local mapping) and any ``--edgevo`` variant, e.g.
-  ``--edgevo "e256=num_edges=256"``: ``edgevo_jax.pipeline.run.run_sequence`` (keyframe-based,
+  ``--edgevo "e256=num_edges=256"``: ``edgevo_jax.runs.run.run_sequence`` (keyframe-based,
   pipelined: the solve of frame i overlaps the preprocessing of frame i+1).
 - ``cv2_rgb``, ``cv2_depth``, ``cv2_rgbd`` (OpenCV 5 ``cv2.Odometry``), ``o3d_color``,
   ``o3d_hybrid`` (Open3D ``compute_rgbd_odometry``): the peers of ``edgevo_jax.peers``
@@ -83,11 +83,11 @@ from edgevo_jax.datasets.tum import SHARED_CLIPS as DEFAULT_CLIPS
 from edgevo_jax.datasets.tum import SHARED_TUM
 from edgevo_jax.io import json_safe
 from edgevo_jax.peers import PEERS, PeerMissing
-from edgevo_jax.pipeline import measure
-from edgevo_jax.pipeline.measure import WARMUP_FRAMES, frame_stats
 from edgevo_jax.provenance import machine_info
 from edgevo_jax.reports import fmt, write_json, write_text
 from edgevo_jax.reports import markdown_table as md_table
+from edgevo_jax.runs import measure
+from edgevo_jax.runs.measure import WARMUP_FRAMES, frame_stats
 
 DEFAULT_EDGEVO = "edgevo"
 # the edgevo variants every run includes: selection off (all edges) and local mapping off
@@ -182,7 +182,7 @@ def run_edgevo(overrides: Sequence[str], seq: Any, max_frames: int | None = None
                ) -> dict[str, Any]:
     """Track ``seq`` with edgevo_jax (``Config().with_overrides(overrides)``)."""
     from edgevo_jax import Config
-    from edgevo_jax.pipeline.run import run_sequence, summarise
+    from edgevo_jax.runs.run import run_sequence, summarise
 
     config = Config().with_overrides(list(overrides))
     baseline = _maxrss_mib()

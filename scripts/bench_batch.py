@@ -35,9 +35,9 @@ import numpy as np
 
 from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets import load_sequence
-from edgevo_jax.pipeline import batch
-from edgevo_jax.pipeline.run import run_sequence, summarise
 from edgevo_jax.reports import write_json, write_text
+from edgevo_jax.runs import batch
+from edgevo_jax.runs.run import run_sequence, summarise
 
 DEFAULT_SEQ = (Path(__file__).resolve().parents[2] / "shared" / "data" / "tum"
                / "rgbd_dataset_freiburg3_teddy_first200")

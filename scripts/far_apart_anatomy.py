@@ -30,15 +30,15 @@ import numpy as np
 from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets.tum import load_sequence, subsequence
 from edgevo_jax.geometry import inverse_np, rotation_angle_np
-from edgevo_jax.pipeline.measure import (
+from edgevo_jax.provenance import machine_info
+from edgevo_jax.reports import int_list, write_json
+from edgevo_jax.runs.measure import (
     accuracy,
     diverged_frames,
     groundtruth_at,
     motion_errors,
 )
-from edgevo_jax.pipeline.run import run_sequence
-from edgevo_jax.provenance import machine_info
-from edgevo_jax.reports import int_list, write_json
+from edgevo_jax.runs.run import run_sequence
 
 
 def true_motion(gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

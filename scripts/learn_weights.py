@@ -93,9 +93,9 @@ from edgevo_jax.learn import (
     window_rpe_loss,
 )
 from edgevo_jax.learn.params import Params, params_to_dict, weighting_of
-from edgevo_jax.pipeline.measure import groundtruth_at, load_clip
-from edgevo_jax.pipeline.run import run_sequence, summarise
 from edgevo_jax.reports import write_json
+from edgevo_jax.runs.measure import groundtruth_at, load_clip
+from edgevo_jax.runs.run import run_sequence, summarise
 from edgevo_jax.viz._canvas import figure, save
 
 DEFAULT_SEQ = SHARED_TUM / "rgbd_dataset_freiburg3_teddy_first200"

@@ -32,11 +32,11 @@ from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets.pingpong import pingpong
 from edgevo_jax.datasets.tum import load_sequence
 from edgevo_jax.geometry import inverse_np, rotation_angle_np
-from edgevo_jax.pipeline import relocalise
-from edgevo_jax.pipeline.measure import accuracy, groundtruth_at
-from edgevo_jax.pipeline.run import run_sequence
 from edgevo_jax.provenance import machine_info
 from edgevo_jax.reports import int_list, write_json
+from edgevo_jax.runs.measure import accuracy, groundtruth_at
+from edgevo_jax.runs.run import run_sequence
+from edgevo_jax.tracking import places as relocalise
 
 #: a kept loop edge this far from the truth's relative pose is accepted wrong (m, degrees)
 WRONG_M, WRONG_DEG = 0.05, 3.0

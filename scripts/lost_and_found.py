@@ -34,10 +34,10 @@ import numpy as np
 from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets.cover import covered_copy
 from edgevo_jax.datasets.tum import EmptyDepthWarning, load_sequence
-from edgevo_jax.pipeline.measure import accuracy, groundtruth_at, pose_errors
-from edgevo_jax.pipeline.run import run_sequence
 from edgevo_jax.provenance import machine_info
 from edgevo_jax.reports import int_list, write_json
+from edgevo_jax.runs.measure import accuracy, groundtruth_at, pose_errors
+from edgevo_jax.runs.run import run_sequence
 
 #: a frame is placed right within these of the truth (m, degrees)
 WITHIN_M, WITHIN_DEG = 0.02, 2.0

@@ -37,9 +37,9 @@ from edgevo_jax.frontend.selection import KeyframeEdges
 from edgevo_jax.geometry import exp_np, inverse_np
 from edgevo_jax.image.preprocess import preprocess
 from edgevo_jax.map import KeyframeMap, MapKeyframe, encode, make_ferns, predicted_overlap
-from edgevo_jax.pipeline.measure import groundtruth_at
 from edgevo_jax.provenance import machine_info
 from edgevo_jax.reports import write_json
+from edgevo_jax.runs.measure import groundtruth_at
 
 #: edge points per frame kept for the overlap (an even subsample of its edges with depth)
 POINTS = 500

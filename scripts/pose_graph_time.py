@@ -26,8 +26,8 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from edgevo_jax.backend.pose_graph import PoseGraph, graph, optimise
 from edgevo_jax.geometry import exp_np, inverse_np
+from edgevo_jax.map.pose_graph import PoseGraph, graph, optimise
 
 SPACING = 0.1  # m between keyframes
 

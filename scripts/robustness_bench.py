@@ -51,8 +51,10 @@ import numpy as np
 from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets.tum import SHARED_TUM, EmptyDepthWarning, TumSequence
 from edgevo_jax.peers import PEERS, PeerMissing
-from edgevo_jax.pipeline import measure
-from edgevo_jax.pipeline.measure import (
+from edgevo_jax.provenance import machine_info
+from edgevo_jax.reports import fmt, int_list, markdown_table, write_json, write_text
+from edgevo_jax.runs import measure
+from edgevo_jax.runs.measure import (
     DIVERGED_ROT_DEG,
     DIVERGED_TRANS_M,
     GT_MAX_DIFF_S,
@@ -64,8 +66,6 @@ from edgevo_jax.pipeline.measure import (
     groundtruth_at,
     load_clip,
 )
-from edgevo_jax.provenance import machine_info
-from edgevo_jax.reports import fmt, int_list, markdown_table, write_json, write_text
 
 DEFAULT_SEQUENCE = SHARED_TUM / "rgbd_dataset_freiburg3_teddy_first200"
 DEFAULT_OUT = Path("docs/robustness")
@@ -181,7 +181,7 @@ def run_peer(method: str, seq: TumSequence) -> dict[str, Any]:
 def run_edgevo(seq: TumSequence, seed: int, base: Config | None = None) -> dict[str, Any]:
     """Track ``seq`` with edgevo_jax, ``base`` (default ``Config()``) with the selection
     seed ``seed``; the scored run plus keyframes."""
-    from edgevo_jax.pipeline.run import run_sequence
+    from edgevo_jax.runs.run import run_sequence
 
     config = (base or Config()).replace(seed=seed)
     with warnings.catch_warnings():  # a depthless frame is a WEAK frame, not a failure
@@ -197,7 +197,7 @@ def run_edgevo(seq: TumSequence, seed: int, base: Config | None = None) -> dict[
 def warm_up(seq: TumSequence, frames: int, base: Config | None = None) -> None:
     """An untimed edgevo run on the first ``frames`` frames, so that the timed runs find the
     programs compiled (the window's compile when it first fills and marginalises)."""
-    from edgevo_jax.pipeline.run import run_sequence
+    from edgevo_jax.runs.run import run_sequence
 
     if frames > 0:
         with warnings.catch_warnings():

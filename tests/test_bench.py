@@ -53,7 +53,7 @@ def test_cv2_rgb_tracks_the_bundled_clip(bench):
 def test_edgevo_row_has_a_compiled_pass_and_keeps_the_first_run_without_it(bench, monkeypatch):
     """The second (compiled) run repeats the first run's poses exactly; if it fails, the first
     run's numbers stay and the row says why the compiled ones are missing."""
-    from edgevo_jax.pipeline import run as runner
+    from edgevo_jax.runs import run as runner
 
     row = bench.run_method("edgevo", BUNDLED_CLIP, max_frames=4)
     assert row["repeat_identical"] is True and math.isfinite(row["compiled_mean_ms"])

@@ -219,7 +219,7 @@ def test_cli_calibration_takes_a_camera_file(tmp_path, monkeypatch):
         seen.append(seq)
         raise _Stop
 
-    monkeypatch.setattr("edgevo_jax.pipeline.run.run_sequence", record)
+    monkeypatch.setattr("edgevo_jax.runs.run.run_sequence", record)
     path = write_camera_toml(tmp_path / "camera.toml", FULL)
     with pytest.raises(_Stop):
         cli.main(["run", str(BUNDLED_CLIP), "--calibration", str(path), "--no-progress",

@@ -68,7 +68,7 @@ def test_every_preset_is_accepted_by_the_cli(name, renamed, monkeypatch):
         seen.append(_camera_of(seq))
         raise _Stop
 
-    monkeypatch.setattr("edgevo_jax.pipeline.run.run_sequence", record)
+    monkeypatch.setattr("edgevo_jax.runs.run.run_sequence", record)
     with pytest.raises(_Stop):
         cli.main(["run", str(renamed), "--camera", name, "--no-progress",
                   "--out", str(renamed.parent / "t.txt")])

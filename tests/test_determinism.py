@@ -22,7 +22,7 @@ def test_importing_the_package_changes_no_process_wide_setting():
     code = (
         "import os, jax\n"
         "before = (os.environ.get('XLA_FLAGS'), jax.config.values.copy())\n"
-        "import edgevo_jax, edgevo_jax.cli, edgevo_jax.pipeline.batch, edgevo_jax.learn\n"
+        "import edgevo_jax, edgevo_jax.cli, edgevo_jax.runs.batch, edgevo_jax.learn\n"
         "after = (os.environ.get('XLA_FLAGS'), jax.config.values.copy())\n"
         "print(before == after)\n"
     )

@@ -372,7 +372,7 @@ def test_cli_reports_bad_input_before_tracking(clip, case, monkeypatch, capsys):
     def no_run(*args, **kw):
         raise AssertionError("run_sequence called on a bad input")
 
-    monkeypatch.setattr("edgevo_jax.pipeline.run.run_sequence", no_run)
+    monkeypatch.setattr("edgevo_jax.runs.run.run_sequence", no_run)
     monkeypatch.setenv("EDGEVO_CACHE_DIR", "")
     assert cli.main(argv) == 2
     err = capsys.readouterr().err
@@ -385,7 +385,7 @@ def test_bad_options_stop_with_the_option_named(clip, case, monkeypatch, capsys)
     def no_run(*args, **kw):
         raise AssertionError("run_sequence called with a bad option")
 
-    monkeypatch.setattr("edgevo_jax.pipeline.run.run_sequence", no_run)
+    monkeypatch.setattr("edgevo_jax.runs.run.run_sequence", no_run)
     rc, text = _user_sees(["run", str(clip), *case.argv(clip), "--out",
                            str(clip.parent / "t.txt"), "--no-progress"])
     assert rc == 2 and re.search(case.problem, text), text
@@ -401,7 +401,7 @@ def test_bad_output_paths_stop_before_tracking_and_write_nothing(clip, n, monkey
     def no_run(*args, **kw):
         raise AssertionError("run_sequence called with a bad output path")
 
-    monkeypatch.setattr("edgevo_jax.pipeline.run.run_sequence", no_run)
+    monkeypatch.setattr("edgevo_jax.runs.run.run_sequence", no_run)
     before = sorted(clip.parent.rglob("*"))
     rc, text = _user_sees(["run", str(clip), *options, "--no-progress"])
     assert rc == 2 and re.search(problem, text), (name, text)
@@ -499,7 +499,7 @@ def test_all_zero_depth_warns_with_its_file_and_does_not_stop(clip):
 def test_all_zero_depth_frames_are_flagged_and_the_run_goes_on(clip, tmp_path):
     """An all-zero first depth cannot start the map and a later one cannot be a keyframe, but
     the run tracks every frame and writes every pose."""
-    from edgevo_jax.pipeline.run import run_sequence
+    from edgevo_jax.runs.run import run_sequence
 
     paths = [_zero_depth(clip, 0), _zero_depth(clip, 4)]  # frames 0 and 3
     seq = load_sequence(clip)
@@ -534,7 +534,7 @@ def test_missing_ground_truth_runs_without_ate_and_says_so(tmp_path, capsys):
 def test_non_finite_user_pose(tmp_path, capsys):
     """A pose handed in by the user: the initial pose of Odometry, a line of an estimate given
     to ``edgevo eval``, a pose written to a trajectory file."""
-    from edgevo_jax.pipeline.odometry import Odometry
+    from edgevo_jax.tracking.odometry import Odometry
 
     pose = np.eye(4)
     pose[1, 3] = np.nan

@@ -14,7 +14,8 @@ from pathlib import Path
 PKG = Path(__file__).resolve().parents[1] / "edgevo_jax"
 
 #: top to bottom: each part may import only from parts after it
-LAYERS = ["cli", "__init__", "viz", "pipeline", "peers", "learn", "backend", "map", "frontend",
+LAYERS = ["cli", "__init__", "pipeline", "backend", "viz", "runs", "peers", "tracking", "learn",
+          "map", "window", "workers", "frontend",
           "image", "datasets", "derive", "solvers", "metrics", "reports", "io", "geometry",
           "_quaternion", "camera_file", "depth_registration", "camera", "config", "programs",
           "determinism", "hostmem", "provenance"]
@@ -69,8 +70,8 @@ def test_imports_only_point_down():
 def test_the_check_sees_imports():
     """The walk finds real edges (a broken walk would pass the test above vacuously)."""
     edges = _edges()
-    assert ("pipeline", "frontend") in edges and ("frontend", "image") in edges
-    assert ("backend", "solvers") in edges and ("cli", "pipeline") in edges
+    assert ("tracking", "frontend") in edges and ("frontend", "image") in edges
+    assert ("window", "solvers") in edges and ("cli", "runs") in edges
 
 
 # -- module-level import cycles -------------------------------------------------------------
@@ -222,7 +223,7 @@ def test_the_cycle_check_sees_imports_and_cycles():
     graph = import_graph()
     assert len(graph) > 50 and "edgevo_jax.datasets" in graph
     assert "edgevo_jax.datasets.bag" in graph["edgevo_jax.datasets.source"]  # in open_source
-    assert "edgevo_jax.pipeline.sweep" in graph["edgevo_jax.viz.sweep"]
+    assert "edgevo_jax.runs.sweep" in graph["edgevo_jax.viz.sweep"]
     assert "edgevo_jax.datasets.base" not in graph["edgevo_jax.datasets.groundtruth"]
     assert import_cycles({"a": {"b"}, "b": {"c"}, "c": {"a", "d"}, "d": set(), "e": {"a"}}) \
         == [["a", "b", "c", "a"]]

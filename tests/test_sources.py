@@ -23,7 +23,7 @@ from edgevo_jax.datasets import load_sequence
 from edgevo_jax.datasets.realsense import open_realsense
 from edgevo_jax.datasets.source import Source, open_source
 from edgevo_jax.datasets.tum import read_calibration
-from edgevo_jax.pipeline.run import run_sequence
+from edgevo_jax.runs.run import run_sequence
 
 pytest.importorskip("rosbags", reason="the ros extra (pip install 'edgevo_jax[ros]')")
 to_bag = load_script("tum_to_bag")

@@ -21,7 +21,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "batch", help="a sweep: many sources, frame steps, seeds and settings, resumable, "
                       "over processes and hosts",
         description="Run a sweep file (TOML: sources, frame_steps, seeds, [base] and [grid] "
-                    "of Config fields; see edgevo_jax.pipeline.sweep) into --out DIR: each "
+                    "of Config fields; see edgevo_jax.runs.sweep) into --out DIR: each "
                     "run's trajectory and JSON line as it finishes (a sweep started again "
                     "skips them), then summary.md / .csv / .png. --processes N runs it in N "
                     "local processes under jax.distributed; --coordinator, --num-processes "
@@ -80,8 +80,8 @@ def command(args: argparse.Namespace) -> int:
         check_output(args.traj_dir, what="--traj-dir", folder=True)
     from ..datasets.tum import load_sequence
     from ..io import matrices_to_poses7, write_trajectory
-    from ..pipeline import batch
-    from ..pipeline.run import summarise
+    from ..runs import batch
+    from ..runs.run import summarise
 
     configs = batch.load_configs(args.configs)
     seqs = [load_sequence(p) for p in (args.sequences or [BUNDLED_CLIP])]
@@ -118,8 +118,8 @@ def _sweep(args: argparse.Namespace) -> int:
     """``edgevo batch SWEEP.toml --out DIR``: this process's part of the sweep (its share
     of the runs, then, as process 0, the summary); with --processes N, start processes
     1 .. N-1 first."""
-    from ..pipeline import processes as procs
-    from ..pipeline import sweep as sw
+    from ..runs import processes as procs
+    from ..runs import sweep as sw
 
     if args.sequences:
         raise ValueError("a sweep file names its sources itself: drop the SEQUENCES "

@@ -60,7 +60,7 @@ def command(args: argparse.Namespace) -> int:
     """``edgevo calibrate``: calibrate, print the estimates, write the camera file."""
     from ..config import Config
     from ..datasets.source import SourceError, open_source
-    from ..pipeline.calibrate import DEFAULT_FIT, calibrate
+    from ..runs.calibrate import DEFAULT_FIT, calibrate
     from .run import _camera
 
     check_output(args.out, what="--out")

@@ -105,7 +105,7 @@ def command(args: argparse.Namespace) -> int:
     print its summary; 130 when interrupted."""
     from ..config import Config
     from ..datasets.source import SourceError, open_source
-    from ..pipeline.run import run_sequence, summarise
+    from ..runs.run import run_sequence, summarise
 
     # every output is checked before anything is read or tracked (docs/errors.md)
     for option in ("out", "stats", "rerun", "online"):

@@ -45,7 +45,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..backend.schur import eliminate_blocks
 from ..camera import Intrinsics, unproject
 from ..derive import SolveKnobs
 from ..frontend.depth import depth_valid
@@ -55,6 +54,7 @@ from ..frontend.shutter import RowMotion, shutter_warp
 from ..geometry import Pose
 from ..image.interp import bilinear_with_grad
 from ..solvers import LevenbergMarquardt
+from ..window.schur import eliminate_blocks
 
 #: The camera parameters the solve can free, in the order of its vectors; the last six are
 #: the depth camera's pose in the colour camera, T_color_depth = (R(depth_rot), depth_t): a

@@ -25,7 +25,7 @@ import numpy as np
 
 from ..datasets.source import Source
 from ..io import poses7_to_matrices
-from ..pipeline.results import LOST, OK, WEAK, FrameResult
+from ..tracking.results import LOST, OK, WEAK, FrameResult
 
 _STATE_CODE = {OK: 0, WEAK: 1, LOST: 2}
 _EDGE_POINTS = 4000  # at most this many of a frame's edges are drawn (evenly spaced)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..pipeline.sweep import Sweep
+from ..runs.sweep import Sweep
 from ._canvas import figure, save
 
 

@@ -14,8 +14,8 @@ from edgevo_jax.cli import BUNDLED_CLIP
 from edgevo_jax.datasets import load_sequence
 from edgevo_jax.frontend.depth import depth_points, depth_valid, point_to_plane
 from edgevo_jax.geometry import Pose
-from edgevo_jax.pipeline.odometry import Odometry
-from edgevo_jax.pipeline.run import run_sequence, summarise
+from edgevo_jax.runs.run import run_sequence, summarise
+from edgevo_jax.tracking.odometry import Odometry
 
 INTR = Intrinsics(100.0, 110.0, 79.3, 60.7)
 H, W = 120, 160

@@ -19,7 +19,7 @@ from edgevo_jax.frontend.features import (
     relative_pose,
 )
 from edgevo_jax.geometry import inverse_np, rotation_angle_np
-from edgevo_jax.pipeline.measure import groundtruth_at
+from edgevo_jax.runs.measure import groundtruth_at
 
 
 @pytest.fixture(scope="module")

@@ -26,7 +26,7 @@ from edgevo_jax.geometry import Pose, exp_np
 from edgevo_jax.image.interp import bilinear, bilinear_with_grad
 from edgevo_jax.io import matrices_to_poses7
 from edgevo_jax.metrics import ate
-from edgevo_jax.pipeline.run import run_sequence
+from edgevo_jax.runs.run import run_sequence
 
 INTR = Intrinsics(517.3, 516.5, 318.6, 255.3)
 H, W = 480, 640
@@ -193,7 +193,7 @@ def test_the_window_sees_each_keyframe_through_its_rolling_shutter():
     rolling-shutter keyframe (unrolled to its middle row's time) lands in another
     rolling-shutter keyframe where the exact simulation sees it (fields u and v read the
     pixel back, 0.05 px); zero twists are the plain window, bit for bit."""
-    from edgevo_jax.backend.window import WindowProblem, edge_residuals
+    from edgevo_jax.window.problem import WindowProblem, edge_residuals
 
     pts_w = _scene(3, 40)
     T_w = [np.eye(4), np.linalg.inv(exp_np(np.array([0.03, -0.01, 0.02, 0.02, -0.05, 0.01])))]

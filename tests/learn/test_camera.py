@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from edgevo_jax import Config
-from edgevo_jax.backend.schur import eliminate_blocks
 from edgevo_jax.camera import Intrinsics
 from edgevo_jax.camera_file import read_camera_file
 from edgevo_jax.cli import BUNDLED_CLIP, main
@@ -21,7 +20,8 @@ from edgevo_jax.frontend.depth import point_to_plane
 from edgevo_jax.frontend.residuals import residual_jacobian_grad
 from edgevo_jax.geometry import Pose, exp_np
 from edgevo_jax.learn.camera import pair_residuals
-from edgevo_jax.pipeline.calibrate import calibrate, pair_data, wide_pairs
+from edgevo_jax.runs.calibrate import calibrate, pair_data, wide_pairs
+from edgevo_jax.window.schur import eliminate_blocks
 
 
 def test_eliminate_blocks_matches_the_dense_solve():
@@ -188,6 +188,6 @@ def test_calibrate_refuses_an_output_folder_before_tracking(tmp_path, capsys):
 
 def test_calibrate_names_a_parameter_it_cannot_fit(tmp_path):
     with pytest.raises(ValueError, match="cannot fit focal_length"):
-        from edgevo_jax.pipeline.calibrate import calibrate
+        from edgevo_jax.runs.calibrate import calibrate
 
         calibrate(open_source(BUNDLED_CLIP), fit=("focal_length", "readout_s"))

@@ -21,7 +21,7 @@ from edgevo_jax.frontend.selection import KeyframeEdges, keyframe_edges
 from edgevo_jax.image.preprocess import preprocess
 from edgevo_jax.learn import track_differentiable
 from edgevo_jax.learn.params import Params, params_from_dict, params_to_dict, solve_knobs_of
-from edgevo_jax.pipeline.run import run_sequence
+from edgevo_jax.runs.run import run_sequence
 
 CONFIG = Config(num_edges=256)
 
@@ -137,8 +137,8 @@ def test_params_that_lose_every_frame_write_finite_poses(bundled):
     finite rotations (the constant-velocity guesses of lost frames in a row once grew into
     inf / NaN after ~25 frames), so its summary can be made."""
     from edgevo_jax.datasets import pingpong
-    from edgevo_jax.pipeline.results import LOST
-    from edgevo_jax.pipeline.run import summarise
+    from edgevo_jax.runs.run import summarise
+    from edgevo_jax.tracking.results import LOST
 
     params = Params.default(CONFIG)._replace(eta=jnp.asarray(1.5))
     seq = pingpong(bundled, 40)
