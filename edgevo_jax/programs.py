@@ -237,3 +237,77 @@ def release_compiled(*, share: float = MAP_SHARE) -> bool:
     jax.clear_caches()
     gc.collect()
     return True
+
+
+# the events JAX records per program (jax._src.dispatch), and its cache's (jax._src.compiler)
+TRACE_EVENT = "/jax/core/compile/jaxpr_trace_duration"
+LOWER_EVENT = "/jax/core/compile/jaxpr_to_mlir_module_duration"
+COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
+CACHE_HIT_EVENT = "/jax/compilation_cache/cache_hits"
+CACHE_MISS_EVENT = "/jax/compilation_cache/cache_misses"
+
+
+class CompileRecorder:
+    """Listens to JAX's monitoring events and gathers one record per compiled program in
+    ``rows`` (``program``: the module name, ``jit_`` and the function's, as the compilation
+    cache names its file; ``trace_s``, ``lower_s``, ``compile_s``; ``cached``: loaded from
+    the cache, False compiled, None unknown; ``bytes``: see ``assign_sizes``). A program's
+    trace and lowering come before its compilation in the thread that runs it, and a cache
+    hit or miss inside it, so they are matched per thread. ``cache_dir``: the compilation
+    cache's folder (None: none)."""
+
+    def __init__(self, cache_dir: Path | None):
+        self.cache_dir, self.rows = cache_dir, []
+        self._local, self._lock = threading.local(), threading.Lock()
+
+    def start(self) -> None:
+        """Listen to JAX's events (until ``stop``)."""
+        import jax.monitoring
+
+        jax.monitoring.register_event_listener(self.on_event)
+        jax.monitoring.register_event_duration_secs_listener(self.on_duration)
+
+    def stop(self) -> None:
+        """Stop listening."""
+        import jax.monitoring
+
+        jax.monitoring.unregister_event_listener(self.on_event)
+        jax.monitoring.unregister_event_duration_listener(self.on_duration)
+
+    def _pending(self) -> dict:
+        if not hasattr(self._local, "pending"):
+            self._local.pending = {"trace_s": 0.0, "lower_s": 0.0, "cached": None}
+        return self._local.pending
+
+    def on_event(self, event: str, **_: Any) -> None:
+        """A JAX event: a cache hit or miss marks the program this thread compiles next."""
+        if event in (CACHE_HIT_EVENT, CACHE_MISS_EVENT):
+            self._pending()["cached"] = event == CACHE_HIT_EVENT
+
+    def on_duration(self, event: str, secs: float, fun_name: str = "?", **_: Any) -> None:
+        """A JAX duration: tracing and lowering add to this thread's next program; a
+        compilation closes its record."""
+        pending = self._pending()
+        if event == TRACE_EVENT:
+            pending["trace_s"] += secs
+        elif event == LOWER_EVENT:
+            pending["lower_s"] += secs
+        elif event == COMPILE_EVENT:
+            name = fun_name.replace("(", "_").rstrip(")")  # jit(f) -> jit_f, as cached
+            with self._lock:
+                self.rows.append({"program": name, **pending, "compile_s": secs,
+                                  "bytes": 0})
+            self._local.pending = {"trace_s": 0.0, "lower_s": 0.0, "cached": None}
+
+    def assign_sizes(self) -> None:
+        """Give each compiled program the size of its cache entry: the entries of one
+        module name in the order they were written, to its compilations in the order they
+        finished (0 where none: loaded, or no cache)."""
+        if self.cache_dir is None or not self.cache_dir.is_dir():
+            return
+        for name in {r["program"] for r in self.rows}:
+            files = sorted(self.cache_dir.glob(f"{name}-*-cache"),
+                           key=lambda p: p.stat().st_mtime_ns)
+            compiled = [r for r in self.rows if r["program"] == name and not r["cached"]]
+            for row, path in zip(compiled, files, strict=False):
+                row["bytes"] = path.stat().st_size

@@ -12,8 +12,9 @@ folder unless ``--cache DIR`` names one (a cache an earlier run filled: what a l
 loads). Start this script in a new process for each measurement: programs compiled earlier
 in a process are not compiled again.
 
-Per XLA program (one line each, in the order they finished): its module name (``jit_`` and
-the edgevo program's name, or a JAX primitive run outside edgevo's programs), the seconds
+Per XLA program (one line each, in the order they finished; ``programs.CompileRecorder``):
+its module name (``jit_`` and the edgevo program's name, or a JAX primitive run outside
+edgevo's programs), the seconds
 spent tracing it to a jaxpr, lowering it to StableHLO and compiling it (or loading it from
 the cache: ``cached`` says which), and its size: the bytes of the compiled executable as the
 cache stores it (0 when it was loaded). Totals at the end, with the run's start-up
@@ -30,72 +31,12 @@ import json
 import os
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
 import jax
-import jax.monitoring
 
-# the events JAX records per program (jax._src.dispatch), and its cache's (jax._src.compiler)
-TRACE = "/jax/core/compile/jaxpr_trace_duration"
-LOWER = "/jax/core/compile/jaxpr_to_mlir_module_duration"
-COMPILE = "/jax/core/compile/backend_compile_duration"
-HIT, MISS = "/jax/compilation_cache/cache_hits", "/jax/compilation_cache/cache_misses"
-
-
-class Recorder:
-    """Listens to JAX's monitoring events and gathers one record per compiled program. A
-    program's trace and lowering come before its compilation in the thread that runs it,
-    and a cache hit or miss inside it, so they are matched per thread."""
-
-    def __init__(self, cache_dir: Path | None):
-        self.cache_dir, self.rows = cache_dir, []
-        self._local, self._lock = threading.local(), threading.Lock()
-
-    def start(self) -> None:
-        """Listen to JAX's events (until ``stop``)."""
-        jax.monitoring.register_event_listener(self.on_event)
-        jax.monitoring.register_event_duration_secs_listener(self.on_duration)
-
-    def stop(self) -> None:
-        jax.monitoring.unregister_event_listener(self.on_event)
-        jax.monitoring.unregister_event_duration_listener(self.on_duration)
-
-    def _pending(self) -> dict:
-        if not hasattr(self._local, "pending"):
-            self._local.pending = {"trace_s": 0.0, "lower_s": 0.0, "cached": None}
-        return self._local.pending
-
-    def on_event(self, event: str, **_) -> None:
-        if event in (HIT, MISS):
-            self._pending()["cached"] = event == HIT
-
-    def on_duration(self, event: str, secs: float, fun_name: str = "?", **_) -> None:
-        pending = self._pending()
-        if event == TRACE:
-            pending["trace_s"] += secs
-        elif event == LOWER:
-            pending["lower_s"] += secs
-        elif event == COMPILE:
-            name = fun_name.replace("(", "_").rstrip(")")  # jit(f) -> jit_f, as cached
-            with self._lock:
-                self.rows.append({"program": name, **pending, "compile_s": secs,
-                                  "bytes": 0})
-            self._local.pending = {"trace_s": 0.0, "lower_s": 0.0, "cached": None}
-
-    def assign_sizes(self) -> None:
-        """Give each compiled program the size of its cache entry: the entries of one
-        module name in the order they were written, to its compilations in the order they
-        finished (0 where none: loaded, or no cache)."""
-        if self.cache_dir is None or not self.cache_dir.is_dir():
-            return
-        for name in {r["program"] for r in self.rows}:
-            files = sorted(self.cache_dir.glob(f"{name}-*-cache"),
-                           key=lambda p: p.stat().st_mtime_ns)
-            compiled = [r for r in self.rows if r["program"] == name and not r["cached"]]
-            for row, path in zip(compiled, files, strict=False):
-                row["bytes"] = path.stat().st_size
+from edgevo_jax.programs import CompileRecorder
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -119,7 +60,7 @@ def main(argv: list[str] | None = None) -> int:
 
     # the folder JAX's compiled programs go to: EDGEVO_CACHE_DIR unless the user set one
     jax_dir = jax.config.jax_compilation_cache_dir
-    recorder = Recorder(Path(jax_dir) if jax_dir else cache)
+    recorder = CompileRecorder(Path(jax_dir) if jax_dir else cache)
     recorder.start()
 
     seq_path = args.sequence if args.sequence is not None else BUNDLED_CLIP

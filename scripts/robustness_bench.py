@@ -66,6 +66,7 @@ from edgevo_jax.runs.measure import (
     groundtruth_at,
     load_clip,
 )
+from edgevo_jax.viz import plot_frame_rates, require_matplotlib
 
 DEFAULT_SEQUENCE = SHARED_TUM / "rgbd_dataset_freiburg3_teddy_first200"
 DEFAULT_OUT = Path("docs/robustness")
@@ -216,40 +217,14 @@ def _progress(run: dict[str, Any]) -> str:
 
 
 def plot(rows: Sequence[dict[str, Any]], path: Path) -> Path | None:
-    """ATE (mean over seeds, min-max bars) and diverged frames per run against the frame
-    step, one line per method, a row of two panels per sequence; None (and a printed note)
-    when matplotlib is missing."""
-    from edgevo_jax.viz._canvas import figure, require_matplotlib, save
-
+    """``viz.plot_frame_rates`` of the aggregate rows; None (and a printed note) when
+    matplotlib is missing."""
     try:
         require_matplotlib()
     except ImportError as err:
         print(f"note: no plot ({err})", flush=True)
         return None
-    seqs = list(dict.fromkeys(r["sequence"] for r in rows))
-    fig = figure((10, 3.6 * len(seqs)), layout="constrained")
-    axes = fig.subplots(len(seqs), 2, squeeze=False)
-    for (ax_ate, ax_div), seq in zip(axes, seqs, strict=True):
-        mine = [r for r in rows if r["sequence"] == seq]
-        for method in dict.fromkeys(r["method"] for r in mine):
-            rs = sorted((r for r in mine if r["method"] == method), key=lambda r: r["step"])
-            k = np.array([r["step"] for r in rs])
-            mean = 1e3 * np.array([r["ate_mean_m"] for r in rs])
-            lo = mean - 1e3 * np.array([r["ate_min_m"] for r in rs])
-            hi = 1e3 * np.array([r["ate_max_m"] for r in rs]) - mean
-            label = f"{method} ({rs[0]['runs']} seeds)" if rs[0]["runs"] > 1 else method
-            ax_ate.errorbar(k, mean, yerr=[lo, hi], marker="o", capsize=3, label=label)
-            ax_div.plot(k, [r["diverged_mean"] for r in rs], marker="o", label=method)
-        ax_ate.set(xlabel="frame step k (every k-th frame)", ylabel="ATE RMSE (mm)",
-                   yscale="log",
-                   title=f"{seq.removeprefix('rgbd_dataset_')}: ATE (mean, min-max over seeds)")
-        ax_div.set(xlabel="frame step k", ylabel="silently diverged frames per run",
-                   title="OK frames off by > 5 cm or > 3 deg")
-        for ax in (ax_ate, ax_div):
-            ax.set_xticks(sorted({r["step"] for r in mine}))
-            ax.grid(alpha=0.3)
-        ax_ate.legend(fontsize=8)
-    return save(fig, path)
+    return plot_frame_rates(rows, path)
 
 
 def run_all(seq_dirs: Sequence[Path], steps: Sequence[int], seeds: Sequence[int],

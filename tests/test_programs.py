@@ -199,13 +199,11 @@ def test_cache_folder_default_and_xdg(tmp_path, monkeypatch):
     assert programs.cache_folder() == Path.home() / "elsewhere"
 
 
-def test_compile_report_records_each_compiled_program():
-    """scripts/compile_report.py's recorder: one row per XLA compilation, named as the
-    compilation cache names its file, with its tracing, lowering and compile times."""
-    from conftest import load_script
-
-    report = load_script("compile_report")
-    recorder = report.Recorder(None)
+def test_compile_recorder_records_each_compiled_program():
+    """programs.CompileRecorder (scripts/compile_report.py's): one row per XLA compilation,
+    named as the compilation cache names its file, with its tracing, lowering and compile
+    times."""
+    recorder = programs.CompileRecorder(None)
 
     def squares_plus_one(x):
         return x * x + 1.0

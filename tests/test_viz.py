@@ -345,3 +345,28 @@ def test_missing_matplotlib_is_named(tmp_path: Path, capsys: pytest.CaptureFixtu
         require_matplotlib()
     rc, _, err = cli(["plot", "configs", str(bench_json(tmp_path))], capsys)
     assert rc == 2 and "pip install 'edgevo_jax[viz]'" in err
+
+
+def test_plot_frame_rates_writes_png(tmp_path: Path) -> None:
+    """scripts/robustness_bench.py's figure: two panels per sequence, one line per method."""
+    from edgevo_jax.viz import plot_frame_rates
+
+    rows = [{"sequence": f"rgbd_dataset_{s}", "method": m, "step": k, "runs": n,
+             "ate_mean_m": 0.01 * k, "ate_min_m": 0.008 * k, "ate_max_m": 0.012 * k,
+             "diverged_mean": k - 1.0}
+            for s in ("a", "b") for m, n in (("edgevo", 3), ("cv2_rgb", 1)) for k in (1, 2, 3)]
+    w, h = png_size(plot_frame_rates(rows, tmp_path / "rates.png"))
+    assert w > 1000 and h > 700  # 10 x 7.2 inches at 120 dpi
+
+
+def test_learning_plots_write_pngs(tmp_path: Path) -> None:
+    """scripts/learn_weights.py's figures: the loss per step and the weight per input."""
+    from edgevo_jax.viz.learning import FEATURE_LABELS, plot_loss_curve, plot_weight_curves
+
+    out = plot_loss_curve([0.5, 0.4, 0.45], [0.5, 0.44, 0.42, 0.41], tmp_path / "loss.png",
+                          "synthetic", "pairs")
+    assert png_size(out) == (400, 240)  # 5 x 3 inches at 80 dpi
+    curves = {name: {"feature": [0.0, 0.5, 1.0], "weight": [0.9, 1.0, 1.1]}
+              for name in FEATURE_LABELS}
+    out = plot_weight_curves(curves, tmp_path / "weights.png", "synthetic")
+    assert png_size(out) == (720, 400)

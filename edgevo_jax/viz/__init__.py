@@ -15,6 +15,10 @@ The ``edgevo plot`` command (``edgevo_jax.cli``) makes each figure with one comm
 - :func:`plot_ablation`: edges used vs ATE (EdgeVO Fig. 6) and time per frame vs ATE
   (Fig. 1d), from the records that ``scripts/ablation_selection.py`` aggregates.
 - :func:`plot_benchmark`: time per frame vs ATE per method, from ``scripts/bench.py`` rows.
+- :func:`plot_frame_rates`: ATE and silently diverged frames against the frame step, from
+  ``scripts/robustness_bench.py``'s aggregates.
+- :func:`learning.plot_loss_curve`, :func:`learning.plot_weight_curves`: a fit of ``Params``
+  (``runs.fit``): the loss per step, the learnt weight against each input.
 - :func:`sweep.plot_sweep`: ATE and ms per frame of every run of a sweep (``edgevo batch
   SWEEP.toml``'s ``summary.png``).
 - :func:`read_results`: the records of a benchmark, ablation or ``edgevo run --stats`` JSON.
@@ -27,6 +31,7 @@ from .comparisons import (
     BENCH_KEYS,
     plot_ablation,
     plot_benchmark,
+    plot_frame_rates,
     plot_selection_overlay,
     read_results,
 )
@@ -40,6 +45,7 @@ __all__ = [
     "plot_ablation",
     "plot_benchmark",
     "plot_frame",
+    "plot_frame_rates",
     "plot_selection_overlay",
     "plot_trajectory",
     "read_results",

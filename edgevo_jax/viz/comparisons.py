@@ -1,5 +1,6 @@
 """Figures that compare: selected edges per selection mode, the selection ablation, the
-benchmark of methods, and the result files they read."""
+benchmark of methods, their accuracy against the frame rate, and the result files they
+read."""
 
 from __future__ import annotations
 
@@ -249,6 +250,38 @@ def plot_benchmark(rows: Sequence[Mapping[str, Any]], path: str | os.PathLike[st
     ax.margins(x=0.15, y=0.12)
     ax.legend(fontsize=9, title="sequence", title_fontsize=9)
     return save(fig, path, dpi)
+
+
+def plot_frame_rates(rows: Sequence[Mapping[str, Any]], path: str | os.PathLike[str]) -> Path:
+    """ATE (mean over seeds, min-max bars) and silently diverged frames per run against the
+    frame step, one line per method, a row of two panels per sequence. ``rows``:
+    ``scripts/robustness_bench.py``'s aggregates (``sequence``, ``method``, ``step``,
+    ``runs``, ``ate_mean_m``, ``ate_min_m``, ``ate_max_m``, ``diverged_mean``). Writes a PNG
+    to ``path`` and returns the path."""
+    seqs = list(dict.fromkeys(r["sequence"] for r in rows))
+    fig = figure((10, 3.6 * len(seqs)), layout="constrained")
+    axes = fig.subplots(len(seqs), 2, squeeze=False)
+    for (ax_ate, ax_div), seq in zip(axes, seqs, strict=True):
+        mine = [r for r in rows if r["sequence"] == seq]
+        for method in dict.fromkeys(r["method"] for r in mine):
+            rs = sorted((r for r in mine if r["method"] == method), key=lambda r: r["step"])
+            k = np.array([r["step"] for r in rs])
+            mean = 1e3 * np.array([r["ate_mean_m"] for r in rs])
+            lo = mean - 1e3 * np.array([r["ate_min_m"] for r in rs])
+            hi = 1e3 * np.array([r["ate_max_m"] for r in rs]) - mean
+            label = f"{method} ({rs[0]['runs']} seeds)" if rs[0]["runs"] > 1 else method
+            ax_ate.errorbar(k, mean, yerr=[lo, hi], marker="o", capsize=3, label=label)
+            ax_div.plot(k, [r["diverged_mean"] for r in rs], marker="o", label=method)
+        ax_ate.set(xlabel="frame step k (every k-th frame)", ylabel="ATE RMSE (mm)",
+                   yscale="log",
+                   title=f"{seq.removeprefix('rgbd_dataset_')}: ATE (mean, min-max over seeds)")
+        ax_div.set(xlabel="frame step k", ylabel="silently diverged frames per run",
+                   title="OK frames off by > 5 cm or > 3 deg")
+        for ax in (ax_ate, ax_div):
+            ax.set_xticks(sorted({r["step"] for r in mine}))
+            ax.grid(alpha=0.3)
+        ax_ate.legend(fontsize=8)
+    return save(fig, path)
 
 
 # ---------------------------------------------------------------------------- result files
