@@ -16,12 +16,15 @@ CPU arithmetic (``EDGEVO_EXACT=0`` turns it off): ``programs.enable_cache``, whi
 settings the user made alone. ``enable_batch_exact`` does the latter alone, before any JAX
 computation.
 
-Layout: ``image`` (preprocessing, interpolation), ``frontend`` (residual, alignment,
-selection, keyframes), ``backend`` (the window, Schur complement, marginalisation),
-``learn`` (Params, differentiable tracking, losses), ``pipeline`` (Odometry, runs, batches),
-with ``geometry``, ``camera``, ``config`` / ``derive``, ``solvers``, ``metrics``, ``io``,
-``datasets``, ``viz`` and ``cli`` beside them; ``peers`` (other odometry methods, for
-comparison), ``pipeline.measure`` and ``reports`` serve the benchmarks and experiments.
+Layout (docs/architecture.md): ``tracking`` (the per-frame tracker: the driver ``Odometry``,
+the decision, recovery, the keyframe map's queries, the back end), ``map`` (the record of
+every pose, the keyframe store, recognition, loops and the pose graph), ``window`` (the
+sliding window, Schur complement, marginalisation, its worker), ``frontend`` (residual,
+alignment, selection, keyframes), ``image`` (preprocessing, interpolation), ``learn``
+(Params, differentiable tracking, losses), ``runs`` (run, batch, sweep, calibrate, measure),
+with ``geometry``, ``camera``, ``config`` / ``derive``, ``solvers``, ``workers``,
+``metrics``, ``io``, ``datasets``, ``viz`` and ``cli`` beside them; ``peers`` (other odometry
+methods, for comparison), ``runs.measure`` and ``reports`` serve the benchmarks.
 """
 
 from .camera import Camera, Intrinsics

@@ -2,7 +2,7 @@
 source can have (``Camera``: pinhole, lens distortion, rolling shutter) with the one table of
 presets (``CAMERAS``).
 
-Conventions (DESIGN.md): pixels (u, v) = (column, row) with the origin at the centre of the
+Conventions (docs/architecture.md): pixels (u, v) = (column, row), the origin at the centre of the
 top-left pixel; rho = 1 / z. Device-side arrays of many points are struct-of-arrays, (3, K)
 points and (2, K) pixels: XLA on CPU vectorises over the last axis.
 """

@@ -137,7 +137,7 @@ class Config:
     fraction of their running average (the paper's)."""
     kf_max_interval_s: float = 1.0
     """[s] A new keyframe at the latest this long after the last one (the paper's)."""
-    # --- local mapping (backend/local_map.py) ---
+    # --- the sliding window (window/sliding.py) ---
     mapping: bool = True
     """[-] The sliding window of keyframes (the backend). Why: the paper's method; fr3_teddy
     ATE 8.6 -> 6.7 mm over seeds 0-8."""
@@ -152,7 +152,7 @@ class Config:
     """[deg] Gradient agreement for activation (the paper's)."""
     mapping_lag: int = 4
     """[frames] Frames after a keyframe at which tracking takes its refined pose from the
-    window, which runs beside tracking on a worker thread (``pipeline/mapping.py``); 0:
+    window, which runs beside tracking on a worker thread (``window/worker.py``); 0:
     inline. Why: the window step takes ~4-6 frames' time on 2 cores."""
     mapping_iterations: int = 5
     """[tries] Pose-only LM tries in the window, then as many joint ones."""
@@ -172,7 +172,7 @@ class Config:
     activation_depth_reach: int = 5
     """[px] How far to either side of an edge the depth test reads. Why: a depth step spreads
     up to 4 px (9 x 9 matching windows), plus a pixel of Canny localisation."""
-    # --- the keyframe map (map/, pipeline/relocalise.py) ---
+    # --- the keyframe map (map/, tracking/places.py) ---
     map: bool = True
     """[-] Keep every keyframe in a map: a lost or doubted frame, and a frame tracked from a
     keyframe made at a guess, asks it where it is (place recognition, a feature start, the
@@ -197,7 +197,7 @@ class Config:
     one the pose graph does not tie to it within twice ``window_size`` edges, is aligned to
     it from the chain's pose beside tracking, verified as a revisit is and confirmed by a
     keyframe beside the old one; the relation is a loop edge, and a pose graph over the
-    map's keyframes (``backend/pose_graph.py``) spreads the drift beside tracking: the
+    map's keyframes (``map/pose_graph.py``) spreads the drift beside tracking: the
     keyframes, the window and the frames tracked from them move with it. False: the map's
     odometry, bit for bit. Why: ``docs/decisions.md``, "Loops closed"."""
     loop_lag: int = 45

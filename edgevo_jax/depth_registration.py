@@ -1,7 +1,7 @@
 """Depth registration: a depth map re-rendered as another camera, at another pose, would see
 it (host side, numpy).
 
-Conventions (DESIGN.md): ``T_color_depth`` maps points from the depth camera's frame to the
+Conventions (docs/architecture.md): ``T_color_depth`` maps points from the depth frame to the
 colour camera's (p_color = R p_depth + t, metres); pixels (u, v) = (column, row) with the
 origin at the centre of the top-left pixel; depth is z in metres, 0 (or non-finite) = none.
 """

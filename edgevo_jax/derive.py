@@ -10,7 +10,7 @@ Tracker (``align.track``, ``chunk``, ``batch``):
   reject limit, the depth residual's weight; learnt Params override the Huber radii, eta
   and the weighting model).
 
-Window (``refine.refine``, ``local_map``):
+Window (``window.refine.refine``, ``window.sliding``):
 - ``window_config(config)``: the refinement's ``MappingConfig``, the same for
   ``refine.refine(problem, config)`` and for the tracker's local map;
 - ``split_window`` / ``join_window``: its ``WINDOW_TRACED`` numbers (Huber radius, gate, eta)

@@ -1,6 +1,6 @@
 """SE(3): ``Pose``, the one device pose type, and its numpy float64 twin for host code.
 
-Conventions (DESIGN.md): ``T_a_b`` maps points from frame b to frame a (p_a = T_a_b p_b);
+Conventions (docs/architecture.md): ``T_a_b`` maps points from frame b to frame a (p_a = T_a_b p_b);
 twists are xi = [v, w] (6,), translation first, exp(xi) = [[exp([w]x), V v], [0, 1]];
 updates are left-multiplicative, T <- exp(xi) T.
 

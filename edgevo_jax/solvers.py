@@ -133,5 +133,5 @@ DAMPING = LevenbergMarquardt()
 #: trajectories: docs/decisions.md).
 WINDOW_DAMPING = LevenbergMarquardt(lam_min=1e-7)
 
-#: The pose graph's (``backend.pose_graph``): floors >= 1e-4 leave a loop's drift half spread.
+#: The pose graph's (``map.pose_graph``): floors >= 1e-4 leave a loop's drift half spread.
 POSE_GRAPH_DAMPING = LevenbergMarquardt(lam_init=1e-4, lam_min=1e-6)

@@ -1,4 +1,4 @@
-"""The package's layers (DESIGN.md): imports only point down, so the layout shows the
+"""The package's layers (docs/architecture.md): imports only point down, so the layout shows the
 odometry and no cycle creeps in, between parts or between modules. Imports for annotations
 only (under ``TYPE_CHECKING``) are not edges; imports inside functions are.
 

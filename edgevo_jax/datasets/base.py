@@ -49,7 +49,7 @@ class UnknownCameraError(SourceError):
 
 @runtime_checkable
 class Source(Protocol):
-    """A sequence of RGB-D frames, read in order by ``pipeline.run.run_sequence``.
+    """A sequence of RGB-D frames, read in order by ``runs.run.run_sequence``.
 
     ``decode_frame(i)`` returns frame i as stored (rgb uint8 (H, W, 3) in RGB order, depth
     in the source's own units); ``rectify_frame`` turns that into what the tracker takes:

@@ -13,6 +13,7 @@ per call); only recovery and the map call it.
 
 from __future__ import annotations
 
+import threading
 from typing import NamedTuple
 
 import cv2
@@ -54,6 +55,27 @@ def detect(gray: np.ndarray, *, max_features: int = MAX_FEATURES,
     if desc is None or not kps:
         return Keypoints(np.zeros((0, 2), np.float32), np.zeros((0, width), dtype))
     return Keypoints(np.array([k.pt for k in kps], np.float32), desc.astype(dtype))
+
+
+class Detections:
+    """The keypoints of one uint8 gray image (H, W), each kind and count detected once
+    (``detect``): the first ``get`` detects, every later one, on any thread, takes the same
+    (one in progress on another thread is waited for). A keyframe's are shared by the
+    recovery's feature start and the map's description of it; a frame's by the recovery,
+    its confirmation and the map's query."""
+
+    def __init__(self, gray: np.ndarray) -> None:
+        self.gray = gray
+        self._lock = threading.Lock()
+        self._found: dict[tuple[str, int], Keypoints] = {}
+
+    def get(self, kind: str, max_features: int = MAX_FEATURES) -> Keypoints:
+        """The image's keypoints of ``kind`` ("sift", "orb"), at most ``max_features``."""
+        with self._lock:
+            key = (kind, max_features)
+            if key not in self._found:
+                self._found[key] = detect(self.gray, kind=kind, max_features=max_features)
+            return self._found[key]
 
 
 def _matches(a: np.ndarray, b: np.ndarray, ratio: float, min_matches: int

@@ -1,7 +1,10 @@
-"""The keyframe map (DESIGN.md, "Beyond the paper"): every keyframe kept with what aligning a
-frame to it again needs (``store``), place recognition by randomised ferns
-(``recognition``) and what a keyframe joins the map with (``describe``)."""
+"""What outlives the window: the one record of every keyframe's and frame's pose
+(``poses``), the keyframe map with what aligning a frame to a keyframe again needs
+(``store``), place recognition by randomised ferns (``recognition``), which frames a tie may
+still move (``ledger``), the loops and the pose graph over the keyframes (``loops``,
+``pose_graph``)."""
 
+from .poses import Correction, Poses
 from .recognition import Ferns, encode, make_ferns, similarity
 from .store import (
     Appearance,
@@ -14,5 +17,6 @@ from .store import (
     predicted_overlap,
 )
 
-__all__ = ["Appearance", "Candidate", "Ferns", "KeyframeMap", "MapFullWarning", "MapKeyframe",
-           "describe", "edge_points", "encode", "make_ferns", "predicted_overlap", "similarity"]
+__all__ = ["Appearance", "Candidate", "Correction", "Ferns", "KeyframeMap", "MapFullWarning",
+           "MapKeyframe", "Poses", "describe", "edge_points", "encode", "make_ferns",
+           "predicted_overlap", "similarity"]

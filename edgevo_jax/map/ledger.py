@@ -1,85 +1,64 @@
-"""Frames whose poses the keyframe map may still move (``Ledger``): those since the last
-frame tracked OK from a keyframe tied to the map. When the map places a frame (a ``Tie``),
-a chain of keyframes made at a guess moves into the map's frame with the correction the
-placed frame measured, and the LOST frames in between are filled in: each takes the pose
-interpolated (along the screw motion, by time) between the tracked frames on either side,
-the placed frame being the last of them. A held or extrapolated pose of a loss is a
-guess; once both ends are known, the path between them is the better one."""
+"""Which frames the keyframe map may still move (``Ledger``): those since the last frame
+settled (tracked OK from a keyframe tied to the map, or placed by it). When a frame settles,
+the LOST frames before it are filled in: each takes the pose interpolated (along the screw
+motion, by time) between the frames tracked on either side, the settled frame being the last
+of them. A held or extrapolated pose of a loss is a guess; once both ends are known, the path
+between them is the better one. A chain made at a guess that the settling frame ties to the
+map has moved with its keyframes already (``map.poses``); the ledger says which frames moved.
+Frames are kept by index; their poses are ``map.poses``'s.
+"""
 
 from __future__ import annotations
-
-from typing import NamedTuple
 
 import numpy as np
 
 from ..geometry import inverse_np, scale_motion_np
-from ..tracking.records import Tie
-from ..tracking.results import LOST, Correction, FrameResult
-
-#: frames the ledger keeps open at most (a loss longer than this is not filled in past it)
-MAX_OPEN = 3000
-
-
-class _Entry(NamedTuple):
-    index: int
-    timestamp: float
-    lost: bool
-    pose: np.ndarray
+from .poses import Correction, Poses
 
 
 class Ledger:
-    """The frames not settled yet (module doc), in order."""
+    """The frames not settled yet, by index, over the poses of ``poses`` (module doc)."""
 
-    def __init__(self) -> None:
-        self._settled: _Entry | None = None  # the last frame settled
-        self._open: list[_Entry] = []
+    def __init__(self, poses: Poses) -> None:
+        self._poses = poses
+        self._settled: int | None = None  # the last frame settled
+        self._open: list[int] = []
 
-    def record(self, index: int, result: FrameResult, *, settled: bool,
-               tie: Tie | None = None) -> Correction | None:
-        """Frame ``index`` was concluded with ``result``; ``settled``: tracked OK from a
-        keyframe tied to the map, or placed by it (``tie``). A settled frame settles the
-        frames before it: the earlier poses that moved (None: none did)."""
-        entry = _Entry(index, result.timestamp, result.state == LOST, result.pose)
+    def record(self, index: int, *, settled: bool, moved: frozenset[int] = frozenset()
+               ) -> Correction | None:
+        """Frame ``index`` (recorded in the poses) was concluded; ``settled``: tracked OK from
+        a keyframe tied to the map, or placed by it. A settled frame settles the frames
+        before it: the earlier poses that moved (None: none did), where ``moved`` are the
+        keyframes a tie moved with it."""
         if not settled:
-            self._open = [*self._open, entry][-MAX_OPEN:]
+            self._open.append(index)
             return None
-        frames = self._open
-        moved = frames
-        if tie is not None and tie.correction is not None and tie.since is not None:
-            moved = [e._replace(pose=tie.correction @ e.pose) if e.index >= tie.since else e
-                     for e in frames]
-        head = [self._settled] if self._settled is not None else []
-        poses = _filled([*head, *moved, entry])[len(head):len(head) + len(moved)]
-        self._settled, self._open = entry, []
-        if all(p is e.pose for p, e in zip(poses, frames, strict=True)):
+        frames, poses = self._open, self._poses
+        head = [] if self._settled is None else [self._settled]
+        filled = _filled(poses, [*head, *frames, index])
+        for i, pose in filled.items():
+            poses.fill(i, pose)
+        self._settled, self._open = index, []
+        if not filled and not any(poses.hangs_from(i) in moved for i in frames):
             return None
-        return Correction(frames[0].index, index - 1, np.stack(poses))
-
-    def move(self, first: int, poses: np.ndarray) -> None:
-        """Frames ``first`` on took the poses ``poses`` (a loop closed): the frames kept here
-        take theirs."""
-        def moved(e: _Entry | None) -> _Entry | None:
-            if e is None or not first <= e.index < first + len(poses):
-                return e
-            return e._replace(pose=poses[e.index - first])
-        self._settled = moved(self._settled)
-        self._open = [moved(e) for e in self._open]
+        return Correction(frames[0], index - 1, poses.poses(frames[0], index))
 
 
-def _filled(entries: list[_Entry]) -> list[np.ndarray]:
-    """The entries' poses with every run of LOST ones between two that are not interpolated
-    between those two (a run with no tracked frame before it keeps its poses)."""
-    poses = [e.pose for e in entries]
+def _filled(poses: Poses, frames: list[int]) -> dict[int, np.ndarray]:
+    """Frame -> its pose interpolated, for every run of LOST frames among ``frames`` between
+    two that are not (a run with no tracked frame before it keeps its poses)."""
+    out: dict[int, np.ndarray] = {}
     left = None
-    for k, e in enumerate(entries):
-        if e.lost:
+    for k, i in enumerate(frames):
+        if poses.lost(i):
             continue
         if left is not None and k - left > 1:
-            a, b = entries[left], e
-            step = inverse_np(a.pose) @ b.pose
-            span = max(b.timestamp - a.timestamp, 1e-9)
-            for j in range(left + 1, k):
-                poses[j] = a.pose @ scale_motion_np(step, (entries[j].timestamp
-                                                           - a.timestamp) / span)
+            a, b = frames[left], i
+            pa = poses.pose(a)
+            step = inverse_np(pa) @ poses.pose(b)
+            ta = poses.timestamp(a)
+            span = max(poses.timestamp(b) - ta, 1e-9)
+            for j in frames[left + 1:k]:
+                out[j] = pa @ scale_motion_np(step, (poses.timestamp(j) - ta) / span)
         left = k
-    return poses
+    return out

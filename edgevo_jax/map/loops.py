@@ -6,7 +6,7 @@ is taken), with the information of the solve that tracked the frame. A loop edge
 keyframe to an older keyframe of the map that sees it and that the graph does not tie to it
 within twice ``window_size`` edges (``tied``): the new keyframe's frame is aligned to it
 from the chain's pose, verified as a revisit is and confirmed by a keyframe beside the old
-one (``relocalise.Places.loop``), on the worker; the search is taken ``Config.loop_lag``
+one (``tracking.places.Places.loop``), on the worker; the search is taken ``Config.loop_lag``
 frames later (``found``). One search is in flight at a time (``searches``).
 
 Information. The solve's covariance (J^T W J)^-1 counts the pixels' noise only: it gives a
@@ -18,7 +18,7 @@ graph's chi-square and its robust kernel speak of the error a keyframe really ha
 Correction. A loop edge that disagrees with the map (chi-square over the kernel's scale
 squared) submits the graph to a worker at the lowest priority (``submit``): the map's
 anchored keyframes whose pose is final, the oldest of each connected part held
-(``backend.pose_graph.optimise``: a Cauchy kernel on loop edges). A loop edge left with a
+(``pose_graph.optimise``: a Cauchy kernel on loop edges). A loop edge left with a
 robust weight under ``MIN_WEIGHT`` is rejected: dropped, and the graph solved again without
 it. The solution is taken ``loop_lag`` frames after it was submitted (the tracker waits for
 it if need be), so when it lands never depends on the machine; loops found meanwhile wait
@@ -29,21 +29,15 @@ its parent's (``corrections``); the driver moves the window and the frames.
 from __future__ import annotations
 
 import time
-from collections import deque
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
-from typing import TYPE_CHECKING, NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from ..config import Config
 from ..geometry import inverse_np, log_np, orthonormalise_np
-from ..tracking.results import Correction
-from ..window.worker import lower_priority
+from ..workers import Worker
 from . import pose_graph
-
-if TYPE_CHECKING:
-    from ..tracking.places import Placed
 
 #: the floor of an edge's standard deviation (m, degrees): a keyframe's drift from the last
 #: (the tracker's bias), not the pixels' noise its solve's covariance counts
@@ -102,16 +96,13 @@ class Loops:
         self.loops: list[Edge] = []  # loop edges not rejected, in the order found
         self.rejected: list[Edge] = []
         self._near: dict[int, set[int]] = {}  # the graph's adjacency
-        self._pool = ThreadPoolExecutor(1, thread_name_prefix="edgevo-loops",
-                                        initializer=lower_priority)
-        self._pending: deque[tuple[int, Future]] = deque()  # (due frame, solve)
-        self._searches: deque[tuple[int, int, Future]] = deque()  # (due, keyframe, search)
+        self._worker = Worker("loops")
+        self._pending = self._worker.queue(config.loop_lag)  # solves
+        self._searches = self._worker.queue(config.loop_lag)  # tagged with the keyframe
         self._unsolved: list[Edge] = []  # loop edges no solve has held yet
         self.solved: list[Closed] = []  # every solve taken, in order
         self._warmed: set[int] = set()  # node slots whose program is compiled (or asked)
         self._count = 0  # keyframes told
-        #: each concluded frame's keyframe and its pose as corrected so far
-        self._frames: list[tuple[int | None, np.ndarray]] = []
 
     # -- what the tracker tells it --------------------------------------------------------
     def keyframe(self, key: int, parent: int | None, covariance: np.ndarray | None) -> None:
@@ -123,29 +114,6 @@ class Loops:
             return
         self._odometry[key] = Edge(parent, key, None, information(covariance))
         self._link(parent, key)
-
-    def frame(self, key: int | None, pose: np.ndarray, moved: Correction | None) -> None:
-        """A frame was concluded, tracked from keyframe ``key`` at ``pose`` (T_world_cam);
-        ``moved``: the earlier frames the map moved with it, if any (``Ledger.record``)."""
-        self._frames.append((key, pose))
-        if moved is not None:
-            span = range(moved.first, moved.last + 1)
-            self._frames[span.start:span.stop] = [
-                (self._frames[i][0], p) for i, p in zip(span, moved.poses, strict=True)]
-
-    def moved_frames(self, moves: dict[int, np.ndarray]) -> Correction | None:
-        """The frames the keyframes' corrections ``moves`` (id -> C) move: from the first
-        tracked from a moved keyframe to the last concluded, each by its keyframe's C (one
-        ``Correction`` "loop"; None when none moves). They are recorded as moved."""
-        first = next((i for i, (k, _) in enumerate(self._frames) if k in moves), None)
-        if first is None:
-            return None
-        keys = [k for k, _ in self._frames[first:]]
-        eye = np.eye(4)
-        poses = np.stack([moves.get(k, eye) for k in keys]) @ np.stack(
-            [p for _, p in self._frames[first:]])
-        self._frames[first:] = list(zip(keys, poses, strict=True))
-        return Correction(first, len(self._frames) - 1, poses, reason="loop")
 
     def stats(self, kmap) -> dict:
         """``closed`` and ``rejected``, the loop edges kept and rejected (the two keyframes'
@@ -188,19 +156,17 @@ class Loops:
         keyframe, and each search costs a few alignments of the worker's time)."""
         return not self._searches
 
-    def search(self, key: int, verify: Callable[[], Placed | None], frame_index: int) -> None:
-        """Run the loop search of keyframe ``key`` (``relocalise.Places.loop``) on the worker;
-        what it finds joins the graph at ``frame_index + loop_lag`` (``found``)."""
-        self._searches.append((frame_index + self.config.loop_lag, key,
-                               self._pool.submit(verify)))
+    def search(self, key: int, verify: Callable[[], Any], frame_index: int) -> None:
+        """Run the loop search of keyframe ``key`` (``tracking.places.Places.loop``: a
+        ``Placed`` or None) on the worker; what it finds joins the graph at ``frame_index +
+        loop_lag`` (``found``)."""
+        self._searches.submit(frame_index, key, verify)
 
     def found(self, frame_index: int) -> list[Edge]:
         """The loops found by the searches due at ``frame_index`` (waited for), in the order
         asked, as edges of the graph (``add``)."""
         out = []
-        while self._searches and self._searches[0][0] <= frame_index:
-            _, key, future = self._searches.popleft()
-            placed = future.result()
+        for key, placed in self._searches.due(frame_index):
             if placed is not None:
                 out.append(self.add(placed.keyframe.id, key, placed.result.T_c_k,
                                     placed.result.covariance, placed.note))
@@ -241,16 +207,17 @@ class Loops:
         edges = [e for e in (*self._odometry.values(), *self.loops)
                  if e.measured is not None and e.i in index and e.j in index]
         poses = np.stack([kmap[k].pose for k in nodes])
-        self._pending.append((frame_index + self.config.loop_lag, self._pool.submit(
-            _solve, nodes, poses, edges, _oldest_of_parts(nodes, edges), _slots(len(nodes)))))
+        self._pending.submit(frame_index, None, _solve, nodes, poses, edges,
+                             _oldest_of_parts(nodes, edges), _slots(len(nodes)))
         return True
 
     def due(self, frame_index: int | None) -> Closed | None:
         """The solve due at ``frame_index`` (None: any submitted), waited for; None when none
         is due. Rejected loop edges leave the graph."""
-        if not self._pending or (frame_index is not None and self._pending[0][0] > frame_index):
+        taken = self._pending.due(frame_index)
+        if not taken:
             return None
-        closed = self._pending.popleft()[1].result()
+        (_, closed), = taken  # one solve in flight at a time
         for edge in closed.rejected:
             self.loops = [e for e in self.loops if e is not edge]
             self.rejected.append(edge)
@@ -277,7 +244,7 @@ class Loops:
         """Stop the worker (searches and a solve not taken are dropped)."""
         self._pending.clear()
         self._searches.clear()
-        self._pool.shutdown(wait=True, cancel_futures=True)
+        self._worker.close()
 
     def _warm(self) -> None:
         """Once a loop is found, compile (or load) on the worker the program of the graph's
@@ -289,7 +256,7 @@ class Loops:
         for size in (slots, 4 * slots if self._count >= slots // 2 else slots):
             if size not in self._warmed:
                 self._warmed.add(size)
-                self._pool.submit(_compile, size)
+                self._worker.run(_compile, size)
 
     def _link(self, a: int, b: int) -> None:
         self._near.setdefault(a, set()).add(b)
@@ -298,7 +265,7 @@ class Loops:
 
 def chi2(edge: Edge, kmap) -> float:
     """An edge's chi-square r^T Omega r at the poses of ``kmap`` (id -> entry with ``pose``),
-    r = log(Z^-1 T_i^-1 T_j) as in ``backend.pose_graph``."""
+    r = log(Z^-1 T_i^-1 T_j) as in ``pose_graph``."""
     r = log_np(inverse_np(edge.measured) @ inverse_np(kmap[edge.i].pose) @ kmap[edge.j].pose)
     return float(r @ edge.information @ r)
 

@@ -13,7 +13,7 @@ vocabulary is trained on images like the user's, and the shared clips are the on
 here, which the held-out evaluation forbids tuning to); they were made for RGB-D keyframes;
 a code is ``NUM_FERNS`` bytes. What they lack is invariance to large changes of viewpoint:
 they find keyframes taken from near the frame's view, and the geometry check after them
-(features matched with PnP, then the edge alignment: ``pipeline.relocalise``) is what
+(features matched with PnP, then the edge alignment: ``tracking.places``) is what
 accepts or refuses a place.
 
 Host side, numpy + OpenCV; deterministic: the ferns are drawn once from a fixed seed.

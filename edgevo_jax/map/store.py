@@ -30,9 +30,10 @@ from typing import NamedTuple
 import numpy as np
 
 from ..camera import Intrinsics
-from ..frontend.features import Keypoints, Landmarks, detect, landmarks
+from ..frontend.features import Detections, Keypoints, Landmarks, landmarks
 from ..frontend.selection import KeyframeEdges
 from ..geometry import inverse_np
+from .poses import Poses
 from .recognition import NUM_FERNS, Ferns, encode, similarity
 
 __all__ = ["Appearance", "Candidate", "KeyframeMap", "MapFullWarning", "MapKeyframe", "edge_points",
@@ -79,7 +80,8 @@ class MapKeyframe:
         """Bytes held by its arrays."""
         arrays = [a for a in self.edges if a is not None]
         return int(sum(np.asarray(a).nbytes for a in arrays) + self.points.nbytes
-                   + (0 if self.code is None else self.code.nbytes) + self.pose.nbytes
+                   + (0 if self.code is None else self.code.nbytes)
+                   + (0 if self.pose is None else self.pose.nbytes)
                    + (self.landmarks.nbytes if self.landmarks is not None else 0))
 
 
@@ -93,17 +95,18 @@ class Appearance(NamedTuple):
     code: np.ndarray
 
 
-def describe(ferns: Ferns, gray: np.ndarray | None, depth: np.ndarray | None,
+def describe(ferns: Ferns, found: Detections | None, depth: np.ndarray | None,
              intr: Intrinsics, *, min_depth: float, max_depth: float) -> Appearance:
-    """A frame's ``Appearance`` (ORB: ``features.detect``; ``features.landmarks``; the fern
-    code, from the depth alone without a gray image)."""
-    if gray is None:
+    """A keyframe's ``Appearance`` from its keypoints (``found``: its image's
+    ``features.Detections``, of which ORB is taken; None: no gray image) and depth
+    (``features.landmarks``; the fern code, from the depth alone without a gray image)."""
+    if found is None:
         h, w = depth.shape if depth is not None else (1, 1)
         return Appearance(None, None, encode(ferns, np.zeros((h, w), np.uint8), depth))
-    kps = detect(gray, kind="orb")
+    kps = found.get("orb")
     lm = None if depth is None else landmarks(kps, depth, intr, min_depth=min_depth,
                                               max_depth=max_depth)
-    return Appearance(kps, lm, encode(ferns, gray, depth))
+    return Appearance(kps, lm, encode(ferns, found.gray, depth))
 
 
 class Candidate(NamedTuple):
@@ -147,18 +150,19 @@ class KeyframeMap:
     (H, W); at most ``max_keyframes`` of them (module doc)."""
 
     def __init__(self, intrinsics: Intrinsics, shape: tuple[int, int], *,
-                 max_keyframes: int) -> None:
+                 max_keyframes: int, poses: Poses | None = None) -> None:
         if max_keyframes < 1:
             raise ValueError(f"max_keyframes must be positive, got {max_keyframes}")
         self.intrinsics, self.shape, self.max_keyframes = intrinsics, tuple(shape), max_keyframes
         self.full_at: int | None = None  #: the first keyframe refused at the cap
+        #: the keyframes' poses (the run's one record of them; its own where none is given)
+        self.poses = Poses() if poses is None else poses
         self._entries: dict[int, MapKeyframe] = {}
         self._covisible: dict[int, dict[int, float]] = {}
         self._rows: dict[int, int] = {}  # id -> row of the arrays below
         self._row_ids: list[int] = []  # row -> id
         cap = 64
         self._codes = np.zeros((cap, NUM_FERNS), np.uint8)
-        self._poses_kept = np.zeros((cap, 4, 4))  # T_world_kf of each row
         self._depths = np.zeros(cap)  # median depth of each keyframe's edges
         self._points = np.full((cap, QUERY_POINTS, 3), np.nan, np.float32)  # NaN: none
         self._live = np.zeros(cap, bool)  # anchored: what queries may return
@@ -172,7 +176,8 @@ class KeyframeMap:
         return key in self._entries
 
     def __getitem__(self, key: int) -> MapKeyframe:
-        return self._entries[key]
+        """Keyframe ``key`` with its pose as it is now (``poses``)."""
+        return dataclasses.replace(self._entries[key], pose=self.poses.keyframe(key))
 
     @property
     def ids(self) -> list[int]:
@@ -182,15 +187,15 @@ class KeyframeMap:
     @property
     def nbytes(self) -> int:
         """Bytes held by the keyframes and the query arrays."""
-        arrays = (self._codes, self._poses_kept, self._depths, self._live, self._described,
-                  self._points)
+        arrays = (self._codes, self._depths, self._live, self._described, self._points)
         return int(sum(e.nbytes for e in self._entries.values())
-                   + sum(a.nbytes for a in arrays))
+                   + sum(a.nbytes for a in arrays) + 16 * 8 * len(self._entries))  # poses
 
     def add(self, kf: MapKeyframe) -> bool:
-        """Keep ``kf`` (its covisibility with the keyframes that overlap it is taken now).
-        False, and a ``MapFullWarning`` the first time, when the map holds ``max_keyframes``
-        already. ValueError for an id already kept or a code of another length."""
+        """Keep ``kf`` (its covisibility with the keyframes that overlap it is taken now); its
+        pose joins ``poses`` unless they hold it already. False, and a ``MapFullWarning`` the
+        first time, when the map holds ``max_keyframes`` already. ValueError for an id
+        already kept or a code of another length."""
         if kf.id in self._entries:
             raise ValueError(f"keyframe {kf.id} is in the map already")
         if kf.code is not None and kf.code.shape != (NUM_FERNS,):
@@ -207,7 +212,9 @@ class KeyframeMap:
             self._grow()
         self._rows[kf.id] = row
         self._row_ids.append(kf.id)
-        self._entries[kf.id] = kf
+        if kf.id not in self.poses:
+            self.poses.add_keyframe(kf.id, kf.pose, kf.timestamp)
+        self._entries[kf.id] = dataclasses.replace(kf, pose=None)  # ``poses`` holds it
         if kf.code is not None:
             self._codes[row], self._described[row] = kf.code, True
         n = kf.points.shape[1]
@@ -217,7 +224,7 @@ class KeyframeMap:
         self._place(kf)
         self._covisible[kf.id] = {}
         if kf.anchored:
-            self._link(kf)
+            self._link(kf.id)
         return True
 
     def describe(self, key: int, landmarks: Landmarks | None, code: np.ndarray) -> None:
@@ -230,14 +237,6 @@ class KeyframeMap:
                                                  code=code)
         self._codes[row], self._described[row] = code, True
 
-    def set_pose(self, key: int, pose: np.ndarray) -> None:
-        """A kept keyframe's new pose T_world_kf (the window refined it); others are
-        ignored."""
-        if key in self._entries:
-            self._entries[key] = dataclasses.replace(self._entries[key],
-                                                     pose=np.asarray(pose, np.float64))
-            self._poses_kept[self._rows[key]] = pose  # its points, and so its depth, stay
-
     def note_share(self, key: int, share: float) -> None:
         """A frame was tracked against keyframe ``key`` with this inlier share."""
         kf = self._entries.get(key)
@@ -245,17 +244,18 @@ class KeyframeMap:
             self._entries[key] = dataclasses.replace(kf, share=float(share))
 
     def anchor(self, keys: Iterable[int], correction: np.ndarray) -> None:
-        """Tie keyframes made at a guess to the map: each of ``keys`` kept takes the pose
-        ``correction @ pose`` (T_world_new_world_guess (4, 4)) and is anchored."""
+        """Tie keyframes made at a guess to the map: each of ``keys`` kept is moved by
+        ``correction`` (T_world_new_world_guess (4, 4); ``poses.move``: the frames tracked
+        from it move with it) and anchored."""
         C = np.asarray(correction, np.float64)
+        keys = [key for key in keys if key in self._entries]
+        self.poses.move({key: C for key in keys})
         for key in keys:
-            kf = self._entries.get(key)
-            if kf is None:
-                continue
-            self._entries[key] = dataclasses.replace(kf, pose=C @ kf.pose, anchored=True)
+            kf = self._entries[key]
+            self._entries[key] = dataclasses.replace(kf, anchored=True)
             self._place(self._entries[key])
             if not kf.anchored:
-                self._link(self._entries[key])
+                self._link(key)
 
     def covisible(self, key: int) -> dict[int, float]:
         """Keyframes that see the scene of keyframe ``key``: id -> covisibility (0-1, the
@@ -293,16 +293,14 @@ class KeyframeMap:
             out = np.zeros((2 * len(a), *a.shape[1:]), a.dtype)
             out[:len(a)] = a
             return out
-        self._codes, self._poses_kept, self._depths, self._live, self._described = (
-            bigger(a) for a in (self._codes, self._poses_kept, self._depths, self._live,
-                                self._described))
+        self._codes, self._depths, self._live, self._described = (
+            bigger(a) for a in (self._codes, self._depths, self._live, self._described))
         points = np.full((2 * len(self._points), *self._points.shape[1:]), np.nan, np.float32)
         points[:len(self._points)] = self._points
         self._points = points
 
     def _place(self, kf: MapKeyframe) -> None:
         row = self._rows[kf.id]
-        self._poses_kept[row] = kf.pose
         self._depths[row] = float(np.median(kf.points[2])) if kf.points.shape[1] else 0.0
         self._live[row] = kf.anchored
 
@@ -318,7 +316,7 @@ class KeyframeMap:
         (``MAX_AXIS_DEG``, ``MAX_DISTANCE_DEPTHS``), in the order they joined."""
         if not rows.size:
             return rows
-        poses = self._poses_kept[rows]
+        poses = self._poses_of(rows)
         cos = poses[:, :3, 2] @ T_w_c[:3, 2]  # the optical axes
         dist = np.linalg.norm(poses[:, :3, 3] - T_w_c[:3, 3], axis=1)
         near = (cos >= np.cos(np.radians(MAX_AXIS_DEG))) \
@@ -328,7 +326,7 @@ class KeyframeMap:
     def _overlaps(self, T_c_w: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """The predicted overlap of the keyframes of ``rows`` with a camera at T_cam_world:
         (len(rows),)."""
-        return self._share(T_c_w[None] @ self._poses_kept[rows], self._points[rows])
+        return self._share(T_c_w[None] @ self._poses_of(rows), self._points[rows])
 
     def _share(self, T_c_k: np.ndarray, points: np.ndarray) -> np.ndarray:
         """``predicted_overlap`` of points (n, P, 3) (NaN rows: none) at T_cur_kf (n, 4, 4),
@@ -345,19 +343,24 @@ class KeyframeMap:
         inside = front & (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)
         return np.count_nonzero(inside, axis=1) / np.maximum(np.count_nonzero(has, axis=1), 1)
 
-    def _link(self, kf: MapKeyframe) -> None:
+    def _poses_of(self, rows: np.ndarray) -> np.ndarray:
+        """(len(rows), 4, 4) T_world_kf of the keyframes of ``rows``."""
+        return self.poses.keyframes([self._row_ids[r] for r in rows])
+
+    def _link(self, key: int) -> None:
         """Covisibility of an anchored keyframe with the anchored ones near it: the smaller
         of the two predicted overlaps (each keyframe's points seen from the other)."""
-        rows = self._near(kf.pose, self._live_rows([kf.id]))
+        pose = self.poses.keyframe(key)
+        rows = self._near(pose, self._live_rows([key]))
         if not rows.size:
             return
-        poses = self._poses_kept[rows]
-        theirs = self._share(inverse_np(kf.pose)[None] @ poses, self._points[rows])
-        mine = self._share(inverse_np(poses) @ kf.pose,
-                           np.broadcast_to(self._points[self._rows[kf.id]],
+        poses = self._poses_of(rows)
+        theirs = self._share(inverse_np(pose)[None] @ poses, self._points[rows])
+        mine = self._share(inverse_np(poses) @ pose,
+                           np.broadcast_to(self._points[self._rows[key]],
                                            (len(rows), QUERY_POINTS, 3)))
         for r, weight in zip(rows, np.minimum(theirs, mine), strict=True):
             if weight > 0:
                 other = self._row_ids[r]
-                self._covisible[kf.id][other] = float(weight)
-                self._covisible[other][kf.id] = float(weight)
+                self._covisible[key][other] = float(weight)
+                self._covisible[other][key] = float(weight)

@@ -165,56 +165,9 @@ def run_sequence(
     writer = TrajectoryWriter(out) if out is not None else None
     if progress:
         _announce_compile(seq, config, params)
-    bar = None  # made after the first frame: its rate and ETA leave the compiling out
-
-    def advance() -> None:
-        nonlocal bar
-        if bar is None:
-            bar = tqdm(total=n, initial=1, desc=seq.name, unit="frame", disable=not progress,
-                       leave=False)
-        else:
-            bar.update(1)
-        bar.set_postfix(kf=odo.num_keyframes, refresh=False)
-    ready = None  # (frame, timestamp, preprocess ms, rgb) decoded and pre-processed, not submitted
-    shown = None  # the rgb and Frame of the frame in flight (for on_frame)
-    lags = depth_lags(seq)  # each depth image's time after its colour image's (None: 0)
-    t_prev = time.perf_counter()
+    bar = _Bar(seq.name, n, odo, progress)
     try:
-        for i in range(n + 1):
-            decode_s = 0.0
-            if i < n:
-                t0 = time.perf_counter()
-                rgb, raw_depth = seq.decode_frame(i)
-                decode_s = time.perf_counter() - t0
-                run.decode_ms.append(decode_s * 1e3)
-            # submit after decoding, so that the solve overlaps preprocessing only
-            pending = odo.submit(*ready[:2], preprocess_ms=ready[2]) if ready else None
-            shown, job, pre_s = (ready[3], ready[0]) if ready else None, None, 0.0
-            if i < n:
-                t1 = time.perf_counter()
-                rgb, depth = seq.rectify_frame(rgb, raw_depth)
-                job = start_preprocess(rgb, depth, config)
-                pre_s = time.perf_counter() - t1
-            result = odo.complete(pending) if pending is not None else None  # meanwhile: DT
-            if job is not None:
-                t2 = time.perf_counter()
-                frame = job.finish()
-                if lags is not None:
-                    frame = dataclasses.replace(frame, depth_lag_s=float(lags[i]))
-                ready = (frame, float(seq.timestamps[i]),
-                         (pre_s + time.perf_counter() - t2) * 1e3, rgb)
-            if result is not None:
-                _record(run, result, writer)
-                now = time.perf_counter()
-                period_ms = (now - t_prev - decode_s) * 1e3
-                run.frame_ms.append(period_ms)
-                if len(run.results) == 1:
-                    run.startup_s = now - started
-                    run.warm_up_s = (odo.warm_up_ms or math.nan) * 1e-3
-                if on_frame is not None:  # not counted in the frame times
-                    on_frame(result, shown[0], shown[1], odo)
-                t_prev = time.perf_counter() if on_frame is not None else now
-                advance()
+        _track_all(seq, odo, n, run, writer, started, on_frame, bar.advance)
     except BaseException as exc:
         run.stopped_at = len(run.results)
         kept = ""
@@ -225,8 +178,7 @@ def run_sequence(
         exc.run_result = run  # type: ignore[attr-defined]  # the partial RunResult
         raise
     finally:
-        if bar is not None:
-            bar.close()
+        bar.close()
         odo.close()
         run.num_keyframes = odo.num_keyframes
         run.mapping_worker_ms = odo.mapping_worker_ms
@@ -238,19 +190,87 @@ def run_sequence(
     return run
 
 
+class _Bar:
+    """The run's progress bar, made after the first frame (its rate and ETA leave the
+    compiling out), with the keyframe count."""
+
+    def __init__(self, name: str, total: int, odo: Odometry, shown: bool) -> None:
+        self.name, self.total, self.odo, self.shown = name, total, odo, shown
+        self.bar = None
+
+    def advance(self) -> None:
+        """One more frame done."""
+        if self.bar is None:
+            self.bar = tqdm(total=self.total, initial=1, desc=self.name, unit="frame",
+                            disable=not self.shown, leave=False)
+        else:
+            self.bar.update(1)
+        self.bar.set_postfix(kf=self.odo.num_keyframes, refresh=False)
+
+    def close(self) -> None:
+        """Take the bar off the screen."""
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _track_all(seq: Source, odo: Odometry, n: int, run: RunResult,
+               writer: TrajectoryWriter | None, started: float, on_frame, advance) -> None:
+    """Track frames 0 to ``n`` - 1 of ``seq`` pipelined (module doc), recording each in
+    ``run`` and ``writer`` as it is concluded."""
+    config = odo.config
+    ready = None  # (frame, timestamp, preprocess ms, rgb) decoded and pre-processed, not submitted
+    lags = depth_lags(seq)  # each depth image's time after its colour image's (None: 0)
+    t_prev = time.perf_counter()
+    for i in range(n + 1):
+        decode_s = 0.0
+        if i < n:
+            t0 = time.perf_counter()
+            rgb, raw_depth = seq.decode_frame(i)
+            decode_s = time.perf_counter() - t0
+            run.decode_ms.append(decode_s * 1e3)
+        # submit after decoding, so that the solve overlaps preprocessing only
+        pending = odo.submit(*ready[:2], preprocess_ms=ready[2]) if ready else None
+        shown, job, pre_s = (ready[3], ready[0]) if ready else None, None, 0.0
+        if i < n:
+            t1 = time.perf_counter()
+            rgb, depth = seq.rectify_frame(rgb, raw_depth)
+            job = start_preprocess(rgb, depth, config)
+            pre_s = time.perf_counter() - t1
+        result = odo.complete(pending) if pending is not None else None  # meanwhile: DT
+        if job is not None:
+            t2 = time.perf_counter()
+            frame = job.finish()
+            if lags is not None:
+                frame = dataclasses.replace(frame, depth_lag_s=float(lags[i]))
+            ready = (frame, float(seq.timestamps[i]),
+                     (pre_s + time.perf_counter() - t2) * 1e3, rgb)
+        if result is not None:
+            _record(run, result, writer)
+            now = time.perf_counter()
+            run.frame_ms.append((now - t_prev - decode_s) * 1e3)
+            if len(run.results) == 1:
+                run.startup_s = now - started
+                run.warm_up_s = (odo.warm_up_ms or math.nan) * 1e-3
+            if on_frame is not None:  # not counted in the frame times
+                on_frame(result, shown[0], shown[1], odo)
+            t_prev = time.perf_counter() if on_frame is not None else now
+            advance()
+
+
 def _take_map(run: RunResult, odo: Odometry) -> None:
-    """The map's statistics and its corrections, applied to the run's results."""
+    """The map's statistics, and the poses as they are now (``Odometry.poses``: moved by the
+    corrections) in the run's results, the online ones kept apart."""
     kmap = odo.keyframe_map
     if kmap is not None:
         run.map_keyframes, run.map_bytes, run.map_full_at = len(kmap), kmap.nbytes, kmap.full_at
     run.corrections = list(odo.corrections)
     run.loops = odo.loop_stats
-    if run.corrections:
-        run.online_poses = run.poses
-    for c in run.corrections:
-        for i, pose in zip(range(c.first, min(c.last + 1, len(run.results))), c.poses,
-                           strict=False):
-            run.results[i] = dataclasses.replace(run.results[i], pose=pose)
+    if not run.corrections:
+        return
+    run.online_poses = run.poses
+    poses = odo.poses()
+    run.results = [dataclasses.replace(r, pose=pose) for r, pose in
+                   zip(run.results, poses, strict=False)] + run.results[len(poses):]
 
 
 #: (image size, configuration, learnt params or not) whose compiling this process announced

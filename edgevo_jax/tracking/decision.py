@@ -4,20 +4,21 @@ the frame's solve and facts, with the host effects it needs asked for as actions
 State (``TrackerState``, ``records``): a few small frozen records: the keyframe
 (``Keyframe``) and the earlier ones kept for recovery, the motion history (``Motion``: the
 last two poses and their times, and the device's prediction inputs), the inlier-share history
-(``shares``), the lost clock (``tracked_t``: when a frame was last tracked) and the window's
-hand-over (``begin_frame``, ``refine``: keyframe poses the window refined, taken at fixed
-frames).
+(``shares``) and the lost clock (``tracked_t``: when a frame was last tracked). Keyframe poses
+are the tracker's copies of the map's record (``map.poses``): ``begin_frame`` and ``follow``
+take the keyframes that moved there (the window's refinements, a loop's correction).
 
 ``decide(state, evidence, config)`` reads the frame's solve and facts (``Evidence``) and
-returns ``Decision(state, result, actions)``. Where it needs something only a host effect can
-give, it returns the unchanged state, no result and that one action: ``Search`` (the
-recovery search from other starts and keyframes), ``Confirm`` (an alignment from a feature
-start), ``Relocalise`` and ``Revisit`` (the keyframe map: ``relocalise``), ``Handover`` (all
-refinements the window has made, waited for) or ``MakeKeyframe`` (edge selection, the
-window's hand-over of the new keyframe). The driver (``odometry.Odometry``) carries it out,
-adds the outcome to the evidence and calls again; each action is asked for at most once per
-frame. With every answer in, the result is the frame's ``FrameResult`` and the state is the
-one the next frame starts from. The rules (docs/decisions.md), in order:
+returns ``Decision(state, result, actions)``, in phases, one short function per rule. Where
+it needs something only a host effect can give, it returns the unchanged state, no result
+and that one action: ``Search`` (the recovery search from other starts and keyframes),
+``Confirm`` (an alignment from a feature start), ``Relocalise`` and ``Revisit`` (the keyframe
+map: ``places``, through ``backend``), ``Handover`` (all refinements the window has made,
+waited for) or ``MakeKeyframe`` (edge selection; the back end takes the keyframe). The driver
+(``odometry.Odometry``) carries it out, adds the answer to the evidence
+(``Evidence.answered``) and calls again; each action is asked for at most once per frame.
+With every answer in, the result is the frame's ``FrameResult`` and the state is the one the
+next frame starts from. The rules (docs/decisions.md), in order:
 
 1. the solve is unusable (``lost_reason``), its inlier share is under ``doubt_share_ratio``
    of the recent frames' highest, or no share has been seen yet: ``Search``;
@@ -38,13 +39,14 @@ one the next frame starts from. The rules (docs/decisions.md), in order:
 6. a new keyframe is built on refined poses only (``Handover`` first); with the map, an older
    keyframe that sees the frame takes over instead where one aligns (``Revisit``); when the
    selection finds too few edges the old keyframe stays.
-This module runs no JAX: each rule is tested with plain numbers (tests/pipeline/test_decision.py).
+This module runs no JAX: each rule is tested with plain numbers (tests/tracking/test_decision.py).
 """
 
 from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -74,74 +76,30 @@ from .records import (
     TrackerState,
 )
 from .results import LOST, OK, WEAK, FrameResult
+from .verify import (
+    SHARE_HISTORY,
+    inlier_share,
+    lost_reason,
+    reference_share,
+    under,
+    weak_reason,
+)
 
 __all__ = ["SHARE_HISTORY", "Confirm", "Decision", "Evidence", "FrameFacts", "Guess",
            "Handover", "Keyframe", "MakeKeyframe", "Motion", "NewKeyframe", "Placed",
            "Relocalise", "Revisit", "Search", "Tie", "Timing", "TrackerState", "begin_frame",
-           "decide", "inlier_share", "lost_reason", "reference_share", "refine",
+           "decide", "follow", "inlier_share", "lost_reason", "reference_share",
            "relative_from_world", "under", "weak_reason"]
 
-#: frames (not lost) whose highest inlier share is the reference for the share ratios
-SHARE_HISTORY = 5
-
-
-# -- judging a solve ---------------------------------------------------------------------------
-def inlier_share(res) -> float:
-    """Level-0 inliers per keyframe edge in view of a TrackResult (0 with none in view)."""
-    return float(res.inliers) / max(float(res.visible), 1.0)
-
-
-def lost_reason(num_edges: int, res, config: Config) -> str | None:
-    """Why a solve result cannot be used (None: it can): no edges in the frame,
-    non-finite pose or covariance, too few inliers, ill-conditioned covariance."""
-    if num_edges == 0:
-        return "no edges in the frame"
-    T = np.asarray(res.T_c_k, np.float64)
-    cov = np.asarray(res.covariance, np.float64)
-    if not (np.all(np.isfinite(T)) and np.all(np.isfinite(cov))):
-        return "non-finite pose"
-    if int(res.inliers) < config.min_inliers:
-        return f"too few inliers ({int(res.inliers)})"
-    eig = np.linalg.eigvalsh(0.5 * (cov + cov.T))  # symmetric: cheaper than cond's SVD
-    cond = eig[-1] / eig[0] if eig[0] > 0 else np.inf
-    if not cond <= config.max_covariance_condition:
-        return f"covariance ill-conditioned (condition {cond:.2g})"
-    return None
-
-
-def weak_reason(has_depth: bool, res, config: Config) -> str | None:
-    """Why a usable result is doubtful: inliers whose mean residual is over half the gate
-    (random matches under the gate average half of it), or a frame without depth (it
-    cannot become a keyframe)."""
-    mean = float(res.mean_residual)
-    if mean > 0.5 * config.max_residual[0]:
-        return f"mean residual {mean:.2f} px over half the gate"
-    if not has_depth:
-        return "no depth (cannot become a keyframe)"
-    return None
-
-
-def reference_share(state: TrackerState, config: Config) -> float | None:
-    """The highest inlier share of the last ``SHARE_HISTORY`` frames not lost; None before
-    there are any or with the check off (``doubt_share_ratio`` 0)."""
-    if not state.shares or config.doubt_share_ratio <= 0:
-        return None
-    return float(np.max(state.shares))
-
-
-def under(res, reference: float | None, ratio: float) -> bool:
-    """Whether a result's inlier share is under ``ratio`` x the reference share."""
-    return reference is not None and inlier_share(res) < ratio * reference
-
-
-# -- the window's hand-over ----------------------------------------------------------------------
-def refine(state: TrackerState, mapped: Sequence[Any]) -> TrackerState:
-    """Take the window's refined keyframe poses (``mapping.Mapped``: ``key`` the keyframe's
-    id, ``pose``): each keyframe kept takes its new pose; when it is the current keyframe the
-    last two frame poses move with it (their motion relative to it, which the device predicts
-    from, is unchanged). A keyframe the state no longer holds (one a recovery left) is
-    skipped."""
-    for m in mapped:
+# -- keyframes that moved ------------------------------------------------------------------------
+def follow(state: TrackerState, moved: Sequence[Any]) -> TrackerState:
+    """The state with the keyframes that moved in the map's record of poses (each with
+    ``key``, the keyframe's id, and its new ``pose``: a refinement of the window, a loop's
+    correction), in order: each keyframe the state holds takes its new pose; when it is the
+    current keyframe the last two frame poses move with it (their motion relative to it,
+    which the device predicts from, is unchanged). A keyframe the state no longer holds (one
+    a recovery left) is skipped."""
+    for m in moved:
         kf = next((k for k in (state.keyframe, *state.previous) if k is not None
                    and k.id == m.key), None)
         if kf is None:
@@ -155,9 +113,10 @@ def refine(state: TrackerState, mapped: Sequence[Any]) -> TrackerState:
     return state
 
 
-def begin_frame(state: TrackerState, due: Sequence[Any]) -> TrackerState:
-    """Count the frame being concluded and take the refinements ``due`` at it (``refine``)."""
-    return refine(dataclasses.replace(state, index=state.index + 1), due)
+def begin_frame(state: TrackerState, moved: Sequence[Any]) -> TrackerState:
+    """Count the frame being concluded, the keyframes that ``moved`` before it followed
+    (``follow``)."""
+    return follow(dataclasses.replace(state, index=state.index + 1), moved)
 
 
 def _with_keyframe(state: TrackerState, kf: Keyframe) -> TrackerState:
@@ -174,137 +133,241 @@ def relative_from_world(motion: Motion, kf_pose: np.ndarray) -> tuple[np.ndarray
     return rel[-1], rel[0]
 
 
-# -- the decision ------------------------------------------------------------------------------
+# -- the decision: a recipe of phases -----------------------------------------------------------
+@dataclass(frozen=True)
+class _Step:
+    """What the phases of ``decide`` have found so far about one frame: the keyframe and the
+    solve it is tracked by (the search or the map may replace the first), the reference
+    share, why it is LOST or WEAK, whether it is doubted (its solve unverified, or its chain
+    made at a guess), where the map placed it (``placed``: its pose in its own chain,
+    ``chain``, and that chain's guess), the state it leads to (``new``), its keyframe reason,
+    the time since the last tracked frame (``since``, s: a LOST frame's), its pose and the
+    ``Tie`` it asks of the driver."""
+
+    kf: Keyframe
+    res: Any
+    reference: float | None
+    lost: str | None = None
+    confirmed: bool = False
+    weak: str | None = None
+    doubted: bool = False
+    placed: Placed | None = None
+    chain: np.ndarray | None = None
+    chain_guess: Guess | None = None
+    new: TrackerState | None = None
+    reason: str | None = None
+    since: float = 0.0
+    T_c_k: np.ndarray | None = None
+    handed: bool = False
+    pose: np.ndarray | None = None
+    tie: Tie | None = None
+    used: int = 0
+    made: NewKeyframe | None = None
+
+
 def decide(state: TrackerState, ev: Evidence, config: Config) -> Decision:
     """The frame's decision (module doc): the next state, the frame's result and no action;
-    or the unchanged state, no result and the one action the decision needs answered first."""
+    or the unchanged state, no result and the one action the decision needs answered first.
+    The rules, one phase each, in order."""
     if ev.solve is None:
         return _first(state, ev, config)
-    facts, res, kf = ev.facts, ev.solve, state.keyframe
-    start_id, confirmed = kf.id, False
+    step = _Step(state.keyframe, ev.solve, reference_share(state, config))
+    for phase in (_searched, _judged, _found_again, _moved_on, _handed_over, _posed,
+                  _revisited, _tied, _keyframed):
+        step = phase(state, ev, config, step)
+        if not isinstance(step, _Step):  # an action to answer first
+            return Decision(state, None, (step,))
+    return _concluded(state, ev, config, step)
+
+
+def _searched(state: TrackerState, ev: Evidence, config: Config, s: _Step) -> _Step | Search:
+    """Rules 1-2: an unusable or doubted solve (a wrong basin, as after a prediction far off)
+    asks for other starts and keyframes (with no reference yet, the first frames, every start
+    is tried); under the lost ratio from every start: LOST."""
+    facts, res, reference = ev.facts, s.res, s.reference
+    kf, confirmed = s.kf, s.confirmed
     lost = lost_reason(facts.num_edges, res, config)
-    reference = reference_share(state, config)
     doubt, lost_ratio = config.doubt_share_ratio, config.lost_share_ratio
-    # lost or doubted (a wrong basin, as after a prediction far off): other starts and other
-    # keyframes; with no reference yet (the first frames) every start is tried
     if facts.num_edges > 0 and (lost is not None or under(res, reference, doubt)
                                 or (reference is None and doubt > 0)):
-        if not ev.searched:
-            return Decision(state, None, (Search(None if lost else res, reference),))
-        if ev.found is not None:
-            kf, res, confirmed = ev.found
+        if not ev.asked(Search):
+            return Search(None if lost else res, reference)
+        if ev.answer(Search) is not None:
+            kf, res, confirmed = ev.answer(Search)
             lost = None
     if lost is None and under(res, reference, lost_ratio):
         lost = (f"inlier share {inlier_share(res):.2f} under {lost_ratio:g} x the recent "
                 f"{reference:.2f} from every start")
+    return dataclasses.replace(s, kf=kf, res=res, lost=lost, confirmed=confirmed)
+
+
+def _judged(state: TrackerState, ev: Evidence, config: Config, s: _Step) -> _Step | Confirm:
+    """Rule 3's WEAK: high residuals, no depth, a doubted solve no feature start confirms
+    (``Confirm``), or a keyframe made at a guess."""
+    kf, res = s.kf, s.res
     weak, doubted = None, kf.guess is not None
-    if lost is None:
-        weak = weak_reason(facts.has_depth, res, config)
-        if weak is None and not confirmed:
-            gap = None if state.tracked_t is None else facts.timestamp - state.tracked_t
-            weak = _doubt_reason(res, reference, config, ev.confirmed, gap)
-            if weak is _ASK:
-                return Decision(state, None, (Confirm(kf, res),))
+    if s.lost is None:
+        weak = weak_reason(ev.facts.has_depth, res, config)
+        if weak is None and not s.confirmed:
+            weak = _share_doubt(res, s.reference, config)
+            gap = None if state.tracked_t is None else ev.facts.timestamp - state.tracked_t
+            far = None if weak is not None else _far_reason(res, config, gap)
+            if far is not None:
+                if not ev.asked(Confirm):
+                    return Confirm(kf, res)
+                weak = None if ev.answer(Confirm) else far + ", not confirmed by features"
             doubted = doubted or weak is not None
         weak = weak or (kf.guess.reason if kf.guess is not None else None)
-    # found again: a lost or doubted frame, or one tracked from a keyframe made at a guess,
-    # asks the map where it is
-    # the map's keyframe it was placed on; its pose in its chain and that chain's guess
-    placed, chain, chain_guess = None, None, None
-    if config.map and facts.num_edges > 0 and (lost is not None or doubted):
-        if not ev.relocalise_asked:
-            if lost is not None:
-                return Decision(state, None, (Relocalise(state.motion.poses[-1]),))
-            guess = kf.pose @ inverse_np(np.asarray(res.T_c_k, np.float64))
-            return Decision(state, None, (Relocalise(
-                guess, inverse_np(state.motion.poses[-1]) @ guess),))
-        if ev.relocalised is not None:
-            if lost is None:
-                chain = kf.pose @ inverse_np(orthonormalise_np(np.asarray(res.T_c_k,
-                                                                          np.float64)))
-            placed, chain_guess = ev.relocalised, kf.guess
-            kf, res, lost, weak = _current(placed.keyframe, facts), placed.result, None, None
-    new = state
-    if lost is None:
-        T_c_k = orthonormalise_np(np.asarray(res.T_c_k, np.float64))
+    return dataclasses.replace(s, weak=weak, doubted=doubted)
+
+
+def _found_again(state: TrackerState, ev: Evidence, config: Config, s: _Step
+                 ) -> _Step | Relocalise:
+    """Rule 4: with the map, a lost or doubted frame, or one tracked from a keyframe made at
+    a guess, asks the map where it is; a verified place makes it OK against that keyframe
+    (its pose in its own chain kept, ``chain``, to move the chain with it)."""
+    if not (config.map and ev.facts.num_edges > 0 and (s.lost is not None or s.doubted)):
+        return s
+    if not ev.asked(Relocalise):
+        if s.lost is not None:
+            return Relocalise(state.motion.poses[-1])
+        guess = s.kf.pose @ inverse_np(np.asarray(s.res.T_c_k, np.float64))
+        return Relocalise(guess, inverse_np(state.motion.poses[-1]) @ guess)
+    placed = ev.answer(Relocalise)
+    if placed is None:
+        return s
+    chain = None if s.lost is not None else s.kf.pose @ inverse_np(
+        orthonormalise_np(np.asarray(s.res.T_c_k, np.float64)))
+    return dataclasses.replace(s, placed=placed, chain=chain, chain_guess=s.kf.guess,
+                               kf=_current(placed.keyframe, ev.facts), res=placed.result,
+                               lost=None, weak=None)
+
+
+def _moved_on(state: TrackerState, ev: Evidence, config: Config, s: _Step) -> _Step:
+    """The state after a tracked frame (its keyframe's inliers counted) and its keyframe
+    reason; for a LOST one, the state as it was, and a new keyframe only when the loss
+    outlasts the keyframe interval (rule 5: the old view may be gone for good)."""
+    facts, kf, res = ev.facts, s.kf, s.res
+    if s.lost is None:
         reason = keyframe_reason(
             flow=float(res.flow), flow_t=float(res.flow_t), inliers=int(res.inliers),
             inlier_mean=float(np.mean(kf.inlier_counts)) if kf.inlier_counts else None,
             dt=facts.timestamp - kf.current_since, config=config)
-        new = _tracked(state, kf, res, facts, config, over=placed is not None)
-    else:  # the prediction, flagged; the keyframe stays (docs/decisions.md), unless the loss
-        # outlasts the keyframe interval: the old view may be gone for good
-        since = facts.timestamp - (state.tracked_t if state.tracked_t is not None
-                                   else kf.timestamp)
-        reason = "lost" if since >= config.kf_max_interval_s else None
-    # a new keyframe is built on refined poses only; a lost frame takes them as well
-    handed = False
-    if reason or lost is not None:
-        if ev.handover is None:
-            return Decision(state, None, (Handover(),))
-        new = refine(new, ev.handover)
-        handed = bool(ev.handover)
-    if lost is None:
-        pose = new.keyframe.pose @ inverse_np(T_c_k)
-    elif ev.prior is None and since > config.lost_extrapolate_s:
-        # too long for the last velocity: the last pose, held
+        return dataclasses.replace(
+            s, T_c_k=orthonormalise_np(np.asarray(res.T_c_k, np.float64)), reason=reason,
+            new=_tracked(state, kf, res, facts, config, over=s.placed is not None))
+    since = facts.timestamp - (state.tracked_t if state.tracked_t is not None
+                               else kf.timestamp)
+    return dataclasses.replace(s, new=state, since=since,
+                               reason="lost" if since >= config.kf_max_interval_s else None)
+
+
+def _handed_over(state: TrackerState, ev: Evidence, config: Config, s: _Step
+                 ) -> _Step | Handover:
+    """Rule 6: a new keyframe is built on refined poses only; a lost frame takes them as
+    well (``Handover``: every refinement handed to the window)."""
+    if not (s.reason or s.lost is not None):
+        return s
+    if not ev.asked(Handover):
+        return Handover()
+    refined = ev.answer(Handover)
+    return dataclasses.replace(s, new=follow(s.new, refined), handed=bool(refined))
+
+
+def _posed(state: TrackerState, ev: Evidence, config: Config, s: _Step) -> _Step:
+    """The frame's pose: from its keyframe when tracked; when LOST, the prediction (finite, a
+    rotation) within ``lost_extrapolate_s`` of the last tracked frame or with a motion prior
+    (evidence: an IMU, wheels), else the last pose, held (rule 5)."""
+    new = s.new
+    if s.lost is None:
+        pose = new.keyframe.pose @ inverse_np(s.T_c_k)
+    elif ev.prior is None and s.since > config.lost_extrapolate_s:
         pose = new.motion.poses[-1]
-    else:  # constant velocity over a short gap; a motion prior (an IMU, wheels) is evidence
-        pose = new.motion.predict(ev.prior) if handed else ev.predicted
+    else:
+        pose = new.motion.predict(ev.prior) if s.handed else ev.predicted
         # lost frames in a row extrapolate again and again: keep R a rotation, stay finite
         pose = orthonormalise_np(pose) if np.all(np.isfinite(pose)) else pose
         if not np.all(np.isfinite(pose)):
             pose = new.motion.poses[-1]
-    # a revisit: an older keyframe of the map that sees the frame takes over from a new one
-    if config.map and reason and lost is None and placed is None and not doubted:
-        if not ev.revisit_asked:
-            return Decision(state, None, (Revisit(pose, _recent(new, config)),))
-        if ev.revisited is not None:
-            placed, chain, reason = ev.revisited, pose, None
-            kf, res = _current(placed.keyframe, facts), placed.result
-            T_c_k = orthonormalise_np(np.asarray(res.T_c_k, np.float64))
-            new = _tracked(refine(state, ev.handover), kf, res, facts, config, over=True)
-            pose = kf.pose @ inverse_np(T_c_k)
-    tie = None
-    if placed is not None:  # the motion moves into the map's frame with the frame, before a
-        # keyframe made from it reads its velocity (rolling shutter, depth timing)
-        tie = _tie(chain_guess or state.keyframe.guess, kf.id, pose, chain)
-        new = dataclasses.replace(new, motion=Motion() if chain is None else dataclasses.replace(
-            new.motion, poses=tuple(pose @ inverse_np(chain) @ p for p in new.motion.poses)))
-    used = new.keyframe.num_edges
-    made = None
-    if reason:
-        if not ev.made_asked:
-            return Decision(state, None, (MakeKeyframe(new.num_keyframes, pose, facts.timestamp,
-                                                       new.motion),))
-        made = ev.made
-    if made is not None:
-        # a keyframe made at a loss's guess, from a doubted frame or in a guessed chain is
-        # guessed: nothing verified its pose
-        guess = kf.guess
-        if config.map and lost is not None:
-            guess = Guess(state.index - 1, made.keyframe.id,
-                          f"made at a guess after {since:.1f} s lost")
-        elif config.map and guess is None and doubted and placed is None and weak:
-            guess = Guess(state.index - 1, made.keyframe.id, "made from a frame not verified")
-        if guess is not None:
-            made = made._replace(keyframe=dataclasses.replace(made.keyframe, guess=guess))
-        if lost is None:  # tracked against kf: the pose graph's edge from it
-            made = made._replace(keyframe=dataclasses.replace(made.keyframe, parent=kf.id))
-        pose, new = made.keyframe.pose, _install(new, made.keyframe, config)
-    new = dataclasses.replace(new, motion=new.motion.push(pose, facts.timestamp))
-    plain = (lost is None and kf.id == start_id and made is None and res is ev.solve
-             and not ev.intrinsics_moved)
-    # the device predicts the next frame from A, B: the solve's own float32 pose when nothing
-    # changed (as the scan carries it), else from the world poses
-    rel = ((np.asarray(res.T_c_k, np.float32), state.motion.rel[0]) if plain
+    return dataclasses.replace(s, pose=pose)
+
+
+def _revisited(state: TrackerState, ev: Evidence, config: Config, s: _Step
+               ) -> _Step | Revisit:
+    """Rule 6, with the map: an older keyframe of the map that sees the frame takes over
+    from the new keyframe it asked for, where one aligns (``Revisit``)."""
+    if not (config.map and s.reason and s.lost is None and s.placed is None
+            and not s.doubted):
+        return s
+    if not ev.asked(Revisit):
+        return Revisit(s.pose, _recent(s.new, config))
+    placed = ev.answer(Revisit)
+    if placed is None:
+        return s
+    kf, res = _current(placed.keyframe, ev.facts), placed.result
+    T_c_k = orthonormalise_np(np.asarray(res.T_c_k, np.float64))
+    new = _tracked(follow(state, ev.answer(Handover)), kf, res, ev.facts, config, over=True)
+    return dataclasses.replace(s, placed=placed, chain=s.pose, reason=None, kf=kf, res=res,
+                               T_c_k=T_c_k, new=new, pose=kf.pose @ inverse_np(T_c_k))
+
+
+def _tied(state: TrackerState, ev: Evidence, config: Config, s: _Step) -> _Step:
+    """A frame the map placed: its motion moves into the map's frame with it, before a
+    keyframe made from it reads its velocity (rolling shutter, depth timing), and the
+    driver is asked to tie its chain (``Tie``)."""
+    new, tie = s.new, None
+    if s.placed is not None:
+        tie = _tie(s.chain_guess or state.keyframe.guess, s.kf.id, s.pose, s.chain)
+        new = dataclasses.replace(new, motion=Motion() if s.chain is None else
+                                  dataclasses.replace(new.motion, poses=tuple(
+                                      s.pose @ inverse_np(s.chain) @ p
+                                      for p in new.motion.poses)))
+    return dataclasses.replace(s, new=new, tie=tie, used=new.keyframe.num_edges)
+
+
+def _keyframed(state: TrackerState, ev: Evidence, config: Config, s: _Step
+               ) -> _Step | MakeKeyframe:
+    """A keyframe reason makes the frame a keyframe (``MakeKeyframe``; too few edges: the old
+    one stays). With the map, one made at a loss's guess, from a doubted frame or in a
+    guessed chain is guessed: nothing verified its pose."""
+    if not s.reason:
+        return s
+    if not ev.asked(MakeKeyframe):
+        return MakeKeyframe(s.new.num_keyframes, s.pose, ev.facts.timestamp, s.new.motion)
+    made = ev.answer(MakeKeyframe)
+    if made is None:
+        return s
+    guess = s.kf.guess
+    if config.map and s.lost is not None:
+        guess = Guess(state.index - 1, made.keyframe.id,
+                      f"made at a guess after {s.since:.1f} s lost")
+    elif config.map and guess is None and s.doubted and s.placed is None and s.weak:
+        guess = Guess(state.index - 1, made.keyframe.id, "made from a frame not verified")
+    kf = made.keyframe
+    if guess is not None:
+        kf = dataclasses.replace(kf, guess=guess)
+    if s.lost is None:  # tracked against s.kf: the pose graph's edge from it
+        kf = dataclasses.replace(kf, parent=s.kf.id)
+    made = made._replace(keyframe=kf)
+    return dataclasses.replace(s, made=made, pose=kf.pose, new=_install(s.new, kf, config))
+
+
+def _concluded(state: TrackerState, ev: Evidence, config: Config, s: _Step) -> Decision:
+    """The state the next frame starts from (the motion pushed; the device's prediction
+    inputs: the solve's own float32 pose when nothing changed, as the scan carries it, else
+    from the world poses) and the frame's result."""
+    new = dataclasses.replace(s.new, motion=s.new.motion.push(s.pose, ev.facts.timestamp))
+    plain = (s.lost is None and s.kf.id == state.keyframe.id and s.made is None
+             and s.res is ev.solve and not ev.intrinsics_moved)
+    rel = ((np.asarray(s.res.T_c_k, np.float32), state.motion.rel[0]) if plain
            else relative_from_world(new.motion, new.keyframe.pose))
     new = dataclasses.replace(new, motion=dataclasses.replace(new.motion, rel=rel))
-    result = _result(ev, pose, LOST if lost else (WEAK if weak else OK), lost or weak,
+    lost, res = s.lost, s.res
+    result = _result(ev, s.pose, LOST if lost else (WEAK if s.weak else OK), lost or s.weak,
                      int(res.inliers), None if lost else np.asarray(res.covariance, np.float64),
-                     reason if made else None, used, made,
-                     None if lost else inlier_share(res), placed)
-    return Decision(new, result, (), plain, tie)
+                     s.reason if s.made else None, s.used, s.made,
+                     None if lost else inlier_share(res), s.placed)
+    return Decision(new, result, (), plain, s.tie)
 
 
 def _current(kf: Keyframe, facts: FrameFacts) -> Keyframe:
@@ -348,31 +411,27 @@ def _tie(guess: Guess | None, key: int, pose: np.ndarray, chain: np.ndarray | No
     return Tie(key, pose @ inverse_np(chain), guess.frame, guess.keyframe, restart=True)
 
 
-_ASK = object()  # _doubt_reason: the confirmation is needed and was not asked yet
-
-
-def _doubt_reason(res, reference: float | None, config: Config, confirmed: bool | None,
-                  gap: float | None = None):
-    """Why a usable solve nothing independent confirmed is doubtful (WEAK): its share stayed
-    under ``doubt_share_ratio`` of the recent frames' from every start; or it moved farther
-    from its start than the alignment's basin (``derive.basin_px``), or its frame comes more
-    than ``lost_extrapolate_s`` after the last tracked one (``gap``, s: a start predicted
-    across a gap that long is no evidence, and the recent shares say little of a view that
-    far), and no feature start converges to it (``confirmed``: the ``Confirm`` answer;
-    ``_ASK`` while not asked)."""
+def _share_doubt(res, reference: float | None, config: Config) -> str | None:
+    """Why a solve is doubtful (WEAK) by its share: under ``doubt_share_ratio`` of the
+    recent frames' from every start, with no feature start to confirm it."""
     doubt = config.doubt_share_ratio
     if under(res, reference, doubt):
         return (f"inlier share {inlier_share(res):.2f} under {doubt:g} x the recent "
                 f"{reference:.2f}, not confirmed by features")
+    return None
+
+
+def _far_reason(res, config: Config, gap: float | None) -> str | None:
+    """Why a solve needs a feature start to confirm it (None: it does not): it moved farther
+    from its start than the alignment's basin (``derive.basin_px``), or its frame comes more
+    than ``lost_extrapolate_s`` after the last tracked one (``gap``, s: a start predicted
+    across a gap that long is no evidence, and the recent shares say little of a view that
+    far)."""
     basin, moved = basin_px(config), float(res.moved)
-    far = gap is not None and gap > config.lost_extrapolate_s
-    if moved > basin or far:
-        if confirmed is None:
-            return _ASK
-        if not confirmed:
-            return (f"moved {moved:.0f} px from its start, past the {basin:.0f} px basin, not "
-                    "confirmed by features" if moved > basin else
-                    f"{gap:.2f} s after the last tracked frame, not confirmed by features")
+    if moved > basin:
+        return f"moved {moved:.0f} px from its start, past the {basin:.0f} px basin"
+    if gap is not None and gap > config.lost_extrapolate_s:
+        return f"{gap:.2f} s after the last tracked frame"
     return None
 
 
@@ -389,19 +448,19 @@ def _install(state: TrackerState, kf: Keyframe, config: Config) -> TrackerState:
 def _first(state: TrackerState, ev: Evidence, config: Config) -> Decision:
     """A frame with no keyframe to solve against (the first, or none usable yet): it becomes
     the keyframe when it has enough edges with depth, else it is LOST at its prediction."""
-    if not ev.made_asked:
+    if not ev.asked(MakeKeyframe):
         return Decision(state, None, (MakeKeyframe(state.num_keyframes, ev.predicted,
                                                    ev.facts.timestamp, state.motion),))
-    new, pose = state, ev.predicted
-    if ev.made is not None:
-        pose, new = ev.made.keyframe.pose, _install(state, ev.made.keyframe, config)
+    new, pose, made = state, ev.predicted, ev.answer(MakeKeyframe)
+    if made is not None:
+        pose, new = made.keyframe.pose, _install(state, made.keyframe, config)
     new = dataclasses.replace(new, motion=new.motion.push(pose, ev.facts.timestamp))
     if new.keyframe is not None:
         new = dataclasses.replace(new, motion=dataclasses.replace(
             new.motion, rel=relative_from_world(new.motion, new.keyframe.pose)))
-    state_, reason = (OK, None) if ev.made else (LOST, "no edges with depth")
-    result = _result(ev, pose, state_, reason, 0, None, "first" if ev.made else None, 0,
-                     ev.made, None)
+    state_, reason = (OK, None) if made else (LOST, "no edges with depth")
+    result = _result(ev, pose, state_, reason, 0, None, "first" if made else None, 0,
+                     made, None)
     return Decision(new, result, ())
 
 

@@ -1,7 +1,7 @@
 """The streaming tracker's host effects, carried out for its decision (``decision``): device
 solves (the per-frame solve and the alignment the recovery runs), the making of a keyframe
-(edge selection, the depth residual's points, the window's hand-over) and the warm-up that
-compiles every program before the first tracked frame.
+(edge selection, the depth residual's points; the back end takes it from there:
+``backend``) and the warm-up that compiles every program before the first tracked frame.
 
 ``Solver`` holds what every solve of one tracker shares: the configuration's static part and
 numbers, the intrinsics (which the window may refine) and the rolling shutter's readout.
@@ -9,7 +9,6 @@ numbers, the intrinsics (which the window may refine) and the rolling shutter's 
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from typing import NamedTuple
 
@@ -22,27 +21,27 @@ from ..derive import basin_px, solve_knobs, solve_structure
 from ..frontend import selection
 from ..frontend.chunk import track_next_jit
 from ..frontend.depth import depth_points
+from ..frontend.features import Detections
 from ..frontend.selection import KeyframeEdges, keyframe_edges
 from ..frontend.shutter import depths_at_colour_time, shutter_rate, unroll_edges
 from ..geometry import inverse_np, log_np
 from ..hostmem import aligned_array, to_host
 from ..image.preprocess import Frame, beside
 from ..learn.params import Params, solve_knobs_of
-from ..window.worker import Mapped, Mapper
+from ..window.worker import Window
 from . import recovery
 from .decision import Confirm, Keyframe, MakeKeyframe, Search, TrackerState, lost_reason, under
 
 
 class Made(NamedTuple):
-    """A keyframe as ``make_keyframe`` made it (``keyframe.pose`` refined when the window
-    runs inline: ``mapped``), the selection time (ms), the tracker's time on the window and
-    its edges on the host (what the keyframe map keeps)."""
+    """A keyframe as ``make_keyframe`` made it, the selection time (ms), its edges on the host
+    (what the window and the keyframe map take) and, with a rolling shutter, its motion per
+    level-0 row (a twist (6,); None with a global shutter)."""
 
     keyframe: Keyframe
     select_ms: float
-    map_ms: float
-    mapped: Mapped | None
     host_edges: KeyframeEdges
+    row_twist: np.ndarray | None
 
 
 class Solver:
@@ -128,10 +127,11 @@ def aligner(solver: Solver, state: TrackerState, frame: Frame, timestamp: float)
 
 
 def search(solver: Solver, state: TrackerState, frame: Frame, ask: Search, timestamp: float,
-           predicted: np.ndarray, prior: np.ndarray | None) -> recovery.Found | None:
+           predicted: np.ndarray, prior: np.ndarray | None, found: Detections | None
+           ) -> recovery.Found | None:
     """The recovery search ``ask`` asks for (``recovery.search``) from the state's keyframes
     (the current one, then the earlier ones, newest first) and last poses; with a motion
-    prior, the constant-velocity start as well."""
+    prior, the constant-velocity start as well. ``found``: the frame's keypoints."""
     config = solver.config
     align, usable = aligner(solver, state, frame, timestamp)
     starts = recovery.motion_starts(state.motion.poses, state.motion.times, timestamp)
@@ -142,27 +142,28 @@ def search(solver: Solver, state: TrackerState, frame: Frame, ask: Search, times
         frame, [state.keyframe, *reversed(state.previous)], first=ask.first,
         predicted=predicted, starts=starts, align=align, usable=usable,
         good_enough=None if reference is None else (lambda out: not under(out, reference, doubt)),
-        intrinsics=solver.intrinsics, config=config,
+        intrinsics=solver.intrinsics, config=config, found=found,
         # with the map, a frame far from every start is the map's to find
         basin=basin_px(config) if config.map else None)
 
 
 def confirm(solver: Solver, state: TrackerState, frame: Frame, ask: Confirm,
-            timestamp: float) -> bool:
-    """Whether a feature start converges to the solve ``ask`` names (``recovery.confirm``)."""
+            timestamp: float, found: Detections | None) -> bool:
+    """Whether a feature start converges to the solve ``ask`` names (``recovery.confirm``;
+    ``found``: the frame's keypoints)."""
     align, usable = aligner(solver, state, frame, timestamp)
     return recovery.confirm(frame, ask.keyframe, ask.solve, align=align, usable=usable,
-                            intrinsics=solver.intrinsics, config=solver.config)
+                            intrinsics=solver.intrinsics, config=solver.config, found=found)
 
 
-def make_keyframe(solver: Solver, mapper: Mapper | None, frame: Frame, ask: MakeKeyframe,
-                  index: int) -> Made | None:
-    """Make ``frame`` the keyframe ``ask`` describes: select its edges (seeded by the keyframe's
-    number; prior motion: constant velocity, T_next_kf = T_w_kf^-1 T_w_prev), move their
-    depths to the colour image's time where the depth image was taken apart from it
-    (``frame.depth_lag_s``; the velocity from the previous frame), unroll them for a
-    rolling shutter (its own velocity to its middle row), hand it to ``mapper`` at frame
-    ``index`` and add the depth residual's points (not moved: that residual pairs two depth
+def make_keyframe(solver: Solver, frame: Frame, ask: MakeKeyframe, found: Detections | None
+                  ) -> Made | None:
+    """Make ``frame`` (``found``: its keypoints, which the keyframe keeps) the keyframe ``ask``
+    describes: select its edges (seeded by the keyframe's number; prior motion: constant
+    velocity, T_next_kf = T_w_kf^-1 T_w_prev), move their depths to the colour image's time
+    where the depth image was taken apart from it (``frame.depth_lag_s``; the velocity from
+    the previous frame), unroll them for a rolling shutter (its own velocity to its middle
+    row) and add the depth residual's points (not moved: that residual pairs two depth
     images, each taken apart from its colour image alike). None when it has too few usable
     edges."""
     config, motion, pose = solver.config, ask.motion, ask.pose
@@ -191,24 +192,19 @@ def make_keyframe(solver: Solver, mapper: Mapper | None, frame: Frame, ask: Make
     if n < config.min_inliers:
         return None
     t1 = time.perf_counter()
-    kf, mapped, map_ms = Keyframe(ask.id, ask.timestamp, pose, n, frame=frame), None, 0.0
-    if mapper is not None:
-        mapped = mapper.add(kf.id, pose, edges, frame, index, twist)
-        if mapped is not None:  # inline: refined already
-            kf = dataclasses.replace(kf, pose=mapped.pose)
-        map_ms = (time.perf_counter() - t1) * 1e3
     if points is not None:
         edges = edges._replace(**dict(zip(("depth_pts", "depth_normals"), points.result(),
                                           strict=True)))
-    kf = dataclasses.replace(kf, edges=jax.device_put(edges))
-    return Made(kf, (t1 - t0) * 1e3, map_ms, mapped, edges)
+    kf = Keyframe(ask.id, ask.timestamp, pose, n, frame=frame, features=found,
+                  edges=jax.device_put(edges))
+    return Made(kf, (t1 - t0) * 1e3, edges, twist)
 
 
-def warm_up(solver: Solver, mapper: Mapper | None, kf: Keyframe, frame: Frame) -> None:
+def warm_up(solver: Solver, window: Window | None, kf: Keyframe, frame: Frame) -> None:
     """At the first keyframe, before any frame is tracked: compile or load, and run once,
     every program the run can need (the solve, which the recovery shares, for the
     keyframe's slot count; the selection for each candidate buffer size, on the
-    preprocessing's idle worker meanwhile), and wait for the window's (``Mapper.warm_up``,
+    preprocessing's idle worker meanwhile), and wait for the window's (``Window.warm_up``,
     started on its worker when it was made), so that no frame waits for one.
     With ``selection=all`` the slot count follows the keyframe's edges (``selection._bucket``:
     1024 to ``max_edges``, five sizes at the default): a keyframe whose count is new compiles
@@ -222,6 +218,6 @@ def warm_up(solver: Solver, mapper: Mapper | None, kf: Keyframe, frame: Frame) -
     rate = None if solver.readout_s <= 0 else np.float32(0.0)
     jax.block_until_ready(solver.next(kf, frame, rel, rate))  # the recovery's program too
     sizes.result()
-    if mapper is not None:
-        mapper.warmed()
+    if window is not None:
+        window.warmed()
 

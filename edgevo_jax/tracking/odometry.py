@@ -1,15 +1,17 @@
 """The streaming tracker ``Odometry``: a thin driver over the per-frame decision.
 
-Per frame (DESIGN.md): host preprocessing -> one jitted device solve against the keyframe's
-edges -> ``decision.decide`` (state, solve, frame facts) -> the actions it asks for
-(recovery search, confirmation, the window's hand-over, a new keyframe: ``effects``) ->
-the frame's result and the next state.
+Per frame (docs/architecture.md): host preprocessing -> one jitted device solve against the
+keyframe's edges -> the back end's tick (keyframes that moved: the state follows them) ->
+``decision.decide`` (state, solve, frame facts) -> the actions it asks for (recovery search,
+confirmation, the map's queries, the window's hand-over, a new keyframe: ``effects``,
+``backend``) -> the frame's result, the next state, and the back end told.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import time
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,19 +20,17 @@ from ..camera import Intrinsics
 from ..config import Config
 from ..derive import readout_time
 from ..frontend.align import TrackResult
+from ..frontend.features import Detections
 from ..frontend.selection import KeyframeEdges
-from ..geometry import inverse_np, orthonormalise_np
+from ..geometry import inverse_np
 from ..hostmem import to_host
 from ..image.preprocess import Frame, preprocess
 from ..learn.params import Params
-from ..map.ledger import Ledger
-from ..map.loops import Closed, Loops
 from ..programs import enable_cache, release_compiled
-from ..window.worker import Mapped, Mapper
 from . import decision
-from .effects import Solver, confirm, make_keyframe, search, warm_up
+from .backend import Backend
+from .effects import Made, Solver, confirm, make_keyframe, search, warm_up
 from .inputs import check_frame, increasing, rigid_transform
-from .places import Places
 from .results import LOST, OK, WEAK, Correction, FrameResult, Refinement
 
 __all__ = ["LOST", "OK", "WEAK", "Correction", "FrameResult", "Odometry"]
@@ -64,16 +64,17 @@ class Odometry:
     ``track`` is synchronous. ``submit`` + ``complete`` split it: ``submit`` dispatches the
     device solve and returns at once, so the caller can prepare the next frame on another
     core before ``complete`` reads the result back (one frame in flight at a time).
-    With ``Config.mapping`` the local window refines each keyframe beside tracking, on a
-    worker thread (``pipeline.mapping``; ``Config.mapping_lag`` 0: inline); ``close()`` (or a
+    With ``Config.mapping`` the sliding window refines each keyframe beside tracking, on a
+    worker thread (``window.worker``; ``Config.mapping_lag`` 0: inline); ``close()`` (or a
     ``with`` block) stops it. Making one switches on the on-disk program cache and the
     CLI's arithmetic (``programs.enable_cache``; ``EDGEVO_CACHE_DIR=""``: no cache).
     ``state`` is the tracker's state (``decision.TrackerState``), ``refinements`` the window's
     keyframe poses as taken. With ``Config.map`` every keyframe joins a map
-    (``relocalise.Places``; ``keyframe_map``) that finds lost frames again; where it ties
-    a chain of keyframes made at a guess back to it, the frames tracked in that chain move
-    into the map's frame: ``corrections`` lists each such move (``Correction``: which earlier
-    results' poses to left-multiply by which transform), in order.
+    (``places.Places``; ``keyframe_map``) that finds lost frames again and closes loops;
+    where it ties a chain of keyframes made at a guess back to it, or a loop moves
+    keyframes, the frames tracked from them move with them: ``corrections`` lists each move
+    (``Correction``: earlier results' poses as they are now), in order, and ``poses()`` gives
+    every frame's pose as it is now (the online poses are the results').
 
     A motion prior (an IMU's, wheel odometry's) goes with a frame: ``track(..., prior=T)``,
     ``track_frame`` and ``submit`` take T = T_prev_cur (4, 4, metres): the frame's camera
@@ -99,22 +100,17 @@ class Odometry:
         pose = np.eye(4) if initial_pose is None else np.asarray(initial_pose, np.float64)
         if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
             raise ValueError("initial_pose must be a finite 4x4 matrix")
-        self._initial = pose
         # what reset() starts again from: the constructor's intrinsics, readout and pose
         self._given = (intrinsics, readout_s, pose)
-        self._solver = Solver(config, intrinsics, self.readout_s, params)
-        self.state = decision.TrackerState()
-        self.refinements: list = []  # the window's keyframe poses, as taken (``Refinement``)
         self.warm_up_ms: float | None = None  # time of the warm-up (at the first keyframe)
-        self._mapper: Mapper | None = None  # made with the first keyframe (image size)
-        self._places: Places | None = None  # the keyframe map, made with the first keyframe
-        self._ledger = Ledger() if config.map else None  # frames the map may still move
-        self._loops: Loops | None = None  # the pose graph (``loops``), made with the map
-        self._made = None  # the keyframe this frame made (``effects.Made``), for the map
-        #: earlier poses moved into the map's frame (``Correction``), in order
-        self.corrections: list[Correction] = []
-        self._handed: dict[int, tuple[float, np.ndarray]] = {}  # in the window: time, pose
-        self._map_ms, self._moved = 0.0, False  # this frame's time on the window; new intrinsics
+        self._start(pose)
+
+    def _start(self, pose: np.ndarray) -> None:
+        """A new trajectory from ``pose`` (T_world_cam of its first frame)."""
+        self._initial = pose
+        self._solver = Solver(self.config, self._given[0], self.readout_s, self.params)
+        self._backend = Backend(self.config, self._solver, self.readout_s)
+        self.state = decision.TrackerState()
         self._last_t: float | None = None
         self._in_flight = False
         self._shape: tuple[int, int] | None = None  # (H, W) of the frames seen by ``track``
@@ -191,17 +187,15 @@ class Odometry:
 
     def locate(self, rgb: np.ndarray, depth: np.ndarray) -> decision.Placed | None:
         """Where the keyframe map places an image (rgb (H, W, 3) or gray uint8, depth (H, W)
-        metres, of the frames' size), as a lost frame is found again (``relocalise``): the
+        metres, of the frames' size), as a lost frame is found again (``places``): the
         map's keyframe, the solve (``result.T_c_k``: T_cam_kf) and how it was found; None
         when no place is verified (or before the first keyframe, or with ``Config.map``
         off). The tracker's state does not change. ValueError as ``track``."""
         self._shape = check_frame(rgb, depth, self._last_t or 0.0, self._shape)
-        if self._places is None:
-            return None
         frame = preprocess(rgb, depth, self.config)
         t = self._last_t if self._last_t is not None else 0.0
-        return self._places.relocalise(self._solver, self.state, frame,
-                                       decision.Relocalise(None), t)
+        found = None if frame.gray is None else Detections(frame.gray)
+        return self._backend.relocalise(self.state, frame, decision.Relocalise(None), t, found)
 
     def reset(self, *, pose: np.ndarray | None = None) -> None:
         """Forget the trajectory: keyframes, poses, the local window (its worker stopped),
@@ -214,26 +208,16 @@ class Odometry:
         ``pose`` when it is no rigid transform."""
         if self._in_flight:
             raise RuntimeError("complete() the frame in flight before reset()")
-        given, warm_up_ms = self._given, self.warm_up_ms
-        intrinsics, readout_s, initial = given
         if pose is not None:
             rigid_transform(pose, name="pose")  # checked; taken as given, as the constructor's
         self.close()
-        Odometry.__init__(self, self.config, intrinsics,
-                          initial_pose=initial if pose is None else pose,
-                          params=self.params, readout_s=readout_s)
-        self._given, self.warm_up_ms = given, warm_up_ms
+        self._start(self._given[2] if pose is None else np.asarray(pose, np.float64))
 
     def close(self) -> None:
-        """Stop the local map's worker thread (refinements not taken yet are dropped), the
-        keyframe map's (keyframes made are described first) and the pose graph's (a solve not
-        taken yet is dropped)."""
-        if self._mapper is not None:
-            self._mapper.close()
-        if self._places is not None:
-            self._places.close()
-        if self._loops is not None:
-            self._loops.close()
+        """Stop the back end's workers: the window's (refinements not taken yet are dropped),
+        the keyframe map's (keyframes made are described first) and the loops' (a search or
+        solve not taken yet is dropped)."""
+        self._backend.close()
 
     def __enter__(self) -> Odometry:
         return self
@@ -278,35 +262,53 @@ class Odometry:
         return kf.timestamp, kf.pose.copy(), np.asarray(edges.uv).T[edges.valid]
 
     @property
+    def refinements(self) -> list[Refinement]:
+        """The window's keyframe poses, as taken (``Refinement``), in order."""
+        return self._backend.refinements
+
+    @property
+    def corrections(self) -> list[Correction]:
+        """Earlier poses moved (a guessed chain tied to the map, LOST frames filled in, a loop
+        closed: ``Correction``), in order."""
+        return self._backend.corrections
+
+    def poses(self) -> np.ndarray:
+        """(N, 4, 4) T_world_cam of every frame concluded, as it is now: its pose as reported,
+        moved by every correction of its keyframe since (``map.poses``)."""
+        return self._backend.poses.poses()
+
+    @property
+    def window(self):
+        """The sliding window (``window.sliding.SlidingWindow``), None before the first
+        keyframe or with ``Config.mapping`` off. Beside tracking, its worker may be changing
+        it: read it after ``close()``."""
+        window = self._backend.window
+        return None if window is None else window.sliding
+
+    @property
     def local_map(self):
-        """The local window (``backend.local_map.LocalMap``), None before the first keyframe
-        or with ``Config.mapping`` off. Beside tracking, its worker may be changing it: read
-        it after ``close()``."""
-        return None if self._mapper is None else self._mapper.local_map
+        """Deprecated name of ``window``."""
+        warnings.warn("Odometry.local_map is deprecated: use Odometry.window",
+                      DeprecationWarning, stacklevel=2)
+        return self.window
 
     @property
     def keyframe_map(self):
         """The keyframe map (``map.KeyframeMap``) with every keyframe made so far, None before
         the first keyframe or with ``Config.map`` off."""
-        if self._places is None:
-            return None
-        self._places.settle()
-        return self._places.map
+        return self._backend.map.keyframe_map
 
     @property
     def loop_stats(self) -> dict | None:
-        """The pose graph so far (``Loops.stats``; None with ``Config.map`` or
+        """The pose graph so far (``map.loops.Loops.stats``; None with ``Config.map`` or
         ``Config.loops`` off)."""
-        if not (self.config.map and self.config.loops):
-            return None
-        if self._loops is None:
-            return {"closed": [], "rejected": [], "solves": []}
-        return self._loops.stats(self._places.map)
+        return self._backend.map.loop_stats
 
     @property
     def mapping_worker_ms(self) -> list[float]:
-        """The local window's time per keyframe taken so far (ms, in order)."""
-        return [] if self._mapper is None else list(self._mapper.worker_ms)
+        """The sliding window's time per keyframe taken so far (ms, in order)."""
+        window = self._backend.window
+        return [] if window is None else list(window.worker_ms)
 
     def solve_inputs(self) -> tuple[KeyframeEdges, np.ndarray, np.ndarray, Intrinsics, object]:
         """What a solve of the next frames needs besides the frames, for solves made
@@ -329,171 +331,77 @@ class Odometry:
         """Run the decision on a solved frame (``res`` None: no keyframe to solve against),
         carrying out the actions it asks for; its result and whether the state went on
         plainly (``decision.Decision.plain``)."""
-        self._map_ms, self._moved = 0.0, False
-        closed = None
-        if self._loops is not None:  # the pose graph's results due now, then its next solve
-            closed = self._loops.due(self.state.index)
-            if closed is not None:
-                self._close(closed)
-            self._loops.found(self.state.index)
-            self._loops.submit(self._places.map, self.state.index)
-        due = self._due(self.state.index + 1)
-        self.state = decision.begin_frame(self.state, due)
-        if (due or closed is not None) and res is not None:  # keyframe poses moved: the
-            # prediction moved with them
+        moved = self._backend.tick(self.state.index)
+        self.state = decision.begin_frame(self.state, moved)
+        if moved and res is not None:  # keyframe poses moved: the prediction with them
             pending = dataclasses.replace(pending, predicted=self.state.motion.predict(
                 pending.prior))
         frame = pending.frame
+        job = _Job(pending, None if frame.gray is None else Detections(frame.gray))
         ev = decision.Evidence(decision.FrameFacts(pending.timestamp, frame.num_edges,
-                                 bool(np.any(frame.edge_depth > 0))), res, pending.predicted,
-                      pending.prior)
+                                                   bool(np.any(frame.edge_depth > 0))),
+                               res, pending.predicted, pending.prior)
         while True:
-            now = time.perf_counter()
-            ev = dataclasses.replace(ev, intrinsics_moved=self._moved, timing=decision.Timing(
-                pending.preprocess_ms, ((t_solve if res is not None else now)
-                                        - pending.t_submit) * 1e3,
-                None if self._mapper is None else self._map_ms, (now - pending.t_submit) * 1e3))
+            ev = dataclasses.replace(ev, intrinsics_moved=self._backend.intrinsics_moved,
+                                     timing=self._timing(pending, res, t_solve))
             d = decision.decide(self.state, ev, self.config)
             if not d.actions:
                 before, self.state = self.state, d.state
-                self._placed(d, frame, before)
+                self._backend.concluded(d, job.made, frame, before)
                 return d.result, d.plain
-            ev = self._act(d.actions[0], ev, pending)
+            action = d.actions[0]
+            ev = ev.answered(action, self._act(action, job))
 
-    def _act(self, action, ev: decision.Evidence, pending: _Pending) -> decision.Evidence:
-        """Carry out one action of the decision; the evidence with its answer."""
-        frame, state = pending.frame, self.state
+    def _timing(self, pending: _Pending, res, t_solve: float) -> decision.Timing:
+        """The frame's clocks so far (``decision.Timing``)."""
+        now = time.perf_counter()
+        return decision.Timing(
+            pending.preprocess_ms, ((t_solve if res is not None else now)
+                                    - pending.t_submit) * 1e3,
+            None if self._backend.window is None else self._backend.ms,
+            (now - pending.t_submit) * 1e3)
+
+    def _act(self, action, job: _Job):
+        """Carry out one action of the decision (``decision``'s module doc); its answer."""
+        p, state, backend = job.pending, self.state, self._backend
         if isinstance(action, decision.Search):
-            return dataclasses.replace(ev, searched=True, found=search(
-                self._solver, state, frame, action, pending.timestamp, pending.predicted,
-                pending.prior))
+            return search(self._solver, state, p.frame, action, p.timestamp, p.predicted,
+                          p.prior, job.found)
         if isinstance(action, decision.Confirm):
-            return dataclasses.replace(ev, confirmed=confirm(self._solver, state, frame, action,
-                                                             pending.timestamp))
+            return confirm(self._solver, state, p.frame, action, p.timestamp, job.found)
         if isinstance(action, decision.Handover):
-            return dataclasses.replace(ev, handover=tuple(self._due(None)))
+            return tuple(backend.handover(state.index - 1))
         if isinstance(action, decision.Relocalise):
-            return dataclasses.replace(ev, relocalise_asked=True, relocalised=None
-                                       if self._places is None else self._places.relocalise(
-                                           self._solver, state, frame, action,
-                                           pending.timestamp))
+            return backend.relocalise(state, p.frame, action, p.timestamp, job.found)
         if isinstance(action, decision.Revisit):
-            return dataclasses.replace(ev, revisit_asked=True, revisited=None
-                                       if self._places is None else self._places.revisit(
-                                           self._solver, state, frame, action,
-                                           pending.timestamp))
+            return backend.revisit(state, p.frame, action, p.timestamp)
         assert isinstance(action, decision.MakeKeyframe), action
-        if self.config.mapping and self._mapper is None:  # the window, made with the first keyframe
-            self._mapper = Mapper(self.config, self.intrinsics, frame.shape,
-                                  rolling_shutter=self.readout_s > 0)
-            if self.warm_up_ms is None:  # its programs compile on its worker from now
-                self._mapper.warm_up()
-        if self.config.map and self._places is None:
-            self._places = Places(self.config, self.intrinsics, frame.shape)
-            if self.config.loops:
-                self._loops = Loops(self.config)
-        made = self._made = make_keyframe(self._solver, self._mapper, frame, action,
-                                          state.index)
+        return self._make_keyframe(action, job)
+
+    def _make_keyframe(self, action: decision.MakeKeyframe, job: _Job
+                       ) -> decision.NewKeyframe | None:
+        """Make the keyframe ``action`` asks for and hand it to the back end; at the first,
+        warm up every program before any frame is tracked (``effects.warm_up``)."""
+        frame, first = job.pending.frame, self.warm_up_ms is None
+        self._backend.start(frame.shape, warm_up=first)
+        made = make_keyframe(self._solver, frame, action, job.found)
         if made is None:
-            return dataclasses.replace(ev, made_asked=True)
-        self._map_ms += made.map_ms
-        if self._mapper is not None:
-            self._handed[made.keyframe.id] = (made.keyframe.timestamp, action.pose)
-        if made.mapped is not None:
-            self._take(made.mapped, state.index - 1)
-        if self.warm_up_ms is None:
-            t0 = self._mapper.warm_since if self._mapper is not None else time.perf_counter()
-            warm_up(self._solver, self._mapper, made.keyframe, frame)
+            return None
+        made = job.made = self._backend.keyframe_made(made, frame, self.state.index - 1)
+        if first:
+            window = self._backend.window
+            t0 = window.warm_since if window is not None else time.perf_counter()
+            warm_up(self._solver, window, made.keyframe, frame)
             self.warm_up_ms = (time.perf_counter() - t0) * 1e3
-        return dataclasses.replace(ev, made_asked=True,
-                                   made=decision.NewKeyframe(made.keyframe, made.select_ms))
+        return decision.NewKeyframe(made.keyframe, made.select_ms)
 
-    def _placed(self, d: decision.Decision, frame: Frame, before: decision.TrackerState
-                ) -> None:
-        """The map's part of a concluded frame (``before``: the state it was tracked from):
-        the keyframe it made joins the map (and the pose graph, which looks for a loop it
-        closes), its share counts for its keyframe, the earlier frames it
-        settles may move (``corrections``: a guessed chain it ties to the map, LOST frames
-        filled in; ``ledger``), and a ``Tie`` out of a guessed chain starts the window again
-        (its keyframes are in the chain's frame)."""
-        made, self._made = self._made, None
-        if self._ledger is None:
-            return
-        kf, result, tie = self.state.keyframe, d.result, d.tie
-        settled = tie is not None or (result.state == OK and kf is not None
-                                      and kf.guess is None)
-        moved = self._ledger.record(self.state.index - 1, result, settled=settled, tie=tie)
-        if moved is not None:
-            self.corrections.append(moved)
-        if self._loops is not None:
-            self._loops.frame(None if kf is None else kf.id, result.pose, moved)
-        if self._places is None:
-            return
-        if made is not None and result.keyframe is not None:
-            self._places.add(kf, made.host_edges, frame, self.intrinsics)
-            if self._loops is not None:
-                self._loops.keyframe(kf.id, kf.parent, result.covariance)
-                if kf.id not in self._handed:  # no window beside tracking: its pose is final
-                    self._loops.measure(kf.id, self._places.map)
-                if kf.guess is None and self._loops.searches():  # a loop it closes: beside
-                    # tracking, joining the graph ``loop_lag`` frames later (``Places.loop``)
-                    verify = self._places.loop(self._solver, before, frame, kf,
-                                               self._loops.tied(kf.id), kf.timestamp)
-                    if verify is not None:
-                        self._loops.search(kf.id, verify, self.state.index)
-        if result.state == OK and result.inlier_share is not None:
-            self._places.note_share(kf.id, result.inlier_share)
-        if tie is not None:
-            self._places.tie(tie)
-            if tie.restart and self._mapper is not None:
-                self._mapper.close()
-                self._mapper, self._handed = None, {}
 
-    def _close(self, closed: Closed) -> None:
-        """Take a solved pose graph: each keyframe of the map moves (``Loops.corrections``),
-        and with it the tracker's records of it, the window's (refinements on their way are
-        moved as they come: ``Mapper.move``) and every frame tracked from it (one
-        ``Correction``)."""
-        kmap = self._places.map
-        moves = self._loops.corrections(closed, kmap.ids)
-        if not moves:
-            return
-        for key, C in moves.items():
-            kmap.set_pose(key, orthonormalise_np(C @ kmap[key].pose))
-        held = [k for k in (self.state.keyframe, *self.state.previous)
-                if k is not None and k.id in moves]
-        self.state = decision.refine(self.state, [
-            Mapped(k.id, orthonormalise_np(moves[k.id] @ k.pose), None) for k in held])
-        if self._mapper is not None:
-            self._mapper.move(moves)
-        frames = self._loops.moved_frames(moves)
-        if frames is not None:
-            self.corrections.append(frames)
-            self._ledger.move(frames.first, frames.poses)
+@dataclass
+class _Job:
+    """One frame being concluded: its pending solve, its keypoints (each kind detected once,
+    by whichever action needs them first; None without a gray image) and the keyframe it
+    made (``effects.Made``, for the back end)."""
 
-    def _due(self, frame_index: int | None) -> list[Mapped]:
-        """The window's refinements due at ``frame_index`` (None: all handed over), waited
-        for and recorded (``_take``)."""
-        if self._mapper is None:
-            return []
-        t0 = time.perf_counter()
-        taken = self._mapper.due(frame_index)
-        index = self.state.index if frame_index is not None else self.state.index - 1
-        for m in taken:
-            self._take(m, index)
-        if taken:
-            self._map_ms += (time.perf_counter() - t0) * 1e3
-        return taken
-
-    def _take(self, m: Mapped, index: int) -> None:
-        """Record a refinement taken at frame ``index`` (``refinements``: its keyframe's pose
-        as handed to the window, and refined) and take the window's intrinsics with it."""
-        timestamp, before = self._handed.pop(m.key)
-        self.refinements.append(Refinement(timestamp, index, before, m.pose))
-        if self._places is not None:
-            self._places.set_pose(m.key, m.pose)
-            if self._loops is not None:
-                self._loops.measure(m.key, self._places.map)
-        if self.config.mapping_intrinsics and tuple(m.intrinsics) != tuple(self.intrinsics):
-            self._solver.intrinsics = m.intrinsics
-            self._moved = True  # solves made with the old ones are stale
+    pending: _Pending
+    found: Detections | None
+    made: Made | None = None

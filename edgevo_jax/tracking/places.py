@@ -1,22 +1,22 @@
 """The keyframe map in the tracker's hands (``Places``): keyframes join it as they are made,
 and it answers the decision's ``Relocalise`` (found again) and ``Revisit`` (an older keyframe
-takes over), and carries out a ``Tie`` (a guessed chain moved into the map's frame).
+takes over) and the loops' search (``loop``); every answer is an alignment judged by the one
+judgement of a verified alignment (``verify.verified``).
 
 Found again (``relocalise``): the frame's fern code picks the ``Config.map_candidates``
 anchored keyframes that look most like it (``map.recognition``), and the keyframe a camera
 at the guessed pose would see best joins them (predicted overlap); each in turn gives a
 start from its ORB landmarks matched to the frame's keypoints (EPnP in RANSAC), the edge
-alignment refines it, and the place is accepted only when the result is verified by more
-than the distance field: the solve stays within the alignment's basin of the feature pose
-(two routes, one without the distance fields, agree), and its inlier share is at least
-``doubt_share_ratio`` of the best share a frame ever had against that keyframe (the standard
-an OK frame meets against its recent frames). The first candidate verified wins; none:
-the query found nothing, and says so (None).
+alignment refines it, and the place is accepted when verified against the keyframe's own
+standard (the best share a frame ever had against it): at the doubt ratio on its own, at
+the lost ratio with a second keyframe that puts the frame at the same pose (``confirmed``).
+The first candidate accepted wins; none: the query found nothing, and says so (None).
 
 Revisit (``revisit``): the anchored keyframes outside the window that would see the frame at
 its tracked pose (predicted overlap at least ``Config.map_overlap``), best first; the first
-whose alignment from that pose is usable, stays in the basin and keeps the recent inlier
-share takes over from the new keyframe the frame asked for.
+whose alignment from that pose is verified at the doubt ratio of the recent share takes
+over from the new keyframe the frame asked for. A loop (``loop``) is found the same way for a
+new keyframe, and confirmed by a second keyframe.
 
 A keyframe joins the map when it is made; its appearance (ORB keypoints and the fern code)
 is described on a worker of its own, at the lowest priority, while the tracker goes on, and
@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from functools import partial
 
 import jax
 import numpy as np
@@ -36,33 +36,32 @@ import numpy as np
 from ..camera import Intrinsics
 from ..config import Config
 from ..derive import basin_px
-from ..frontend.features import detect, landmark_pose, refine_pose
+from ..frontend.features import Detections, landmark_pose, refine_pose
 from ..frontend.selection import KeyframeEdges
-from ..geometry import inverse_np, rotation_angle_np
+from ..geometry import inverse_np
 from ..image.preprocess import Frame
 from ..map import (
     Candidate,
     KeyframeMap,
     MapKeyframe,
+    Poses,
     describe,
     edge_points,
     encode,
     make_ferns,
 )
-from ..window.worker import lower_priority
+from ..workers import Worker
 from .decision import (
     Keyframe,
     Placed,
     Relocalise,
     Revisit,
-    Tie,
     TrackerState,
     inlier_share,
     reference_share,
-    under,
 )
 from .effects import Solver, aligner
-from .recovery import AGREE_DEG, AGREE_M
+from .verify import SECOND_DEG, SECOND_M, agree, verified
 
 #: ORB keypoints of a frame being relocalised (a keyframe keeps 1000): twice as many match a
 #: keyframe's across a wide baseline (teddy 17 degrees apart: 30 ratio-test matches against
@@ -74,42 +73,33 @@ QUERY_FEATURES = 2000
 QUERY_RATIO = 0.9
 
 
-#: a second keyframe confirms a relocalised pose when it places the frame within this much of
-#: the first (m, degrees): twice the agreement of two solves against one keyframe
-#: (``recovery.AGREE_M``, ``AGREE_DEG``), for the two keyframes' own pose errors
-SECOND_M, SECOND_DEG = 2 * AGREE_M, 2 * AGREE_DEG
-
-
 class Places:
     """The map of one tracker (module doc), for frames of ``shape`` (H, W) through
-    ``intrinsics``."""
+    ``intrinsics``; the keyframes' poses are ``poses``' (the run's one record of them)."""
 
-    def __init__(self, config: Config, intrinsics: Intrinsics, shape: tuple[int, int]) -> None:
+    def __init__(self, config: Config, intrinsics: Intrinsics, shape: tuple[int, int],
+                 poses: Poses) -> None:
         self.config = config
-        self.map = KeyframeMap(intrinsics, shape, max_keyframes=config.map_max_keyframes)
+        self.map = KeyframeMap(intrinsics, shape, max_keyframes=config.map_max_keyframes,
+                               poses=poses)
         self.ferns = make_ferns()
-        # keyframes whose appearance is being described, in order: (id, future)
-        self._pending: list[tuple[int, Future]] = []
-        self._pool = ThreadPoolExecutor(1, thread_name_prefix="edgevo-places",
-                                        initializer=lower_priority)
+        self._worker = Worker("places")  # describes keyframes
+        self._describing = self._worker.queue()
 
     # -- what the tracker tells it --------------------------------------------------------
     def add(self, kf: Keyframe, edges: KeyframeEdges, frame: Frame,
             intrinsics: Intrinsics) -> None:
         """A keyframe was made: ``kf`` (anchored unless ``kf.guess``) joins the map with its
-        host edges at once; its appearance is described from ``frame`` on a worker."""
+        host edges at once; its appearance is described from ``frame`` (and the keypoints
+        ``kf.features``) on a worker."""
         config = self.config
         if not self.map.add(MapKeyframe(kf.id, kf.timestamp, kf.pose, edges,
                                         edge_points(edges, self.map.intrinsics), None, None,
                                         anchored=kf.guess is None)):
             return
-        self._pending.append((kf.id, self._pool.submit(
-            describe, self.ferns, frame.gray, frame.depth, intrinsics,
-            min_depth=config.min_depth, max_depth=config.max_depth)))
-
-    def set_pose(self, key: int, pose: np.ndarray) -> None:
-        """Keyframe ``key`` has a new pose T_world_kf (the window refined it)."""
-        self.map.set_pose(key, pose)
+        self._describing.submit(0, kf.id, partial(
+            describe, self.ferns, kf.features, frame.depth, intrinsics,
+            min_depth=config.min_depth, max_depth=config.max_depth))
 
     def note_share(self, key: int, share: float) -> None:
         """A frame was tracked against keyframe ``key`` with this inlier share."""
@@ -118,23 +108,29 @@ class Places:
     def close(self) -> None:
         """Describe what is pending and stop the worker."""
         self.settle()
-        self._pool.shutdown(wait=True)
+        self._worker.close()
 
-    def tie(self, tie: Tie) -> None:
-        """Carry out the map's part of a ``Tie``: the guessed chain's keyframes take the
-        correction and are anchored."""
-        if tie.correction is None or tie.guessed is None:
-            return
-        keys = [k for k in self.map.ids if k >= tie.guessed and not self.map[k].anchored]
-        self.map.anchor(keys, tie.correction)
+    def anchor(self, first: int, correction: np.ndarray) -> list[int]:
+        """The chain made at a guess from keyframe ``first`` on is tied to the map: its
+        keyframes (and the frames tracked from them) take ``correction`` and are anchored;
+        their ids."""
+        keys = [k for k in self.map.ids if k >= first and not self.map[k].anchored]
+        self.map.anchor(keys, correction)
+        return keys
+
+    def settle(self) -> None:
+        """The keyframes described so far take their appearance, in the order they were
+        made (waiting for the worker where needed)."""
+        for key, appearance in self._describing.due(None):
+            self.map.describe(key, appearance.landmarks, appearance.code)
 
     # -- what the decision asks ---------------------------------------------------------------
     def relocalise(self, solver: Solver, state: TrackerState, frame: Frame, ask: Relocalise,
-                   timestamp: float) -> Placed | None:
-        """Where the map places the frame (module doc), or None."""
+                   timestamp: float, found: Detections | None) -> Placed | None:
+        """Where the map places the frame (module doc; ``found``: its keypoints), or None."""
         self.settle()
         config = self.config
-        if frame.gray is None or not len(self.map):
+        if frame.gray is None or found is None or not len(self.map):
             return None
         code = encode(self.ferns, frame.gray, frame.depth)
         how = {c.id: "place recognition"
@@ -144,7 +140,7 @@ class Places:
                 how.setdefault(c.id, "the guessed pose")
         if not how:
             return None
-        kps = detect(frame.gray, kind="orb", max_features=QUERY_FEATURES)
+        kps = found.get("orb", QUERY_FEATURES)
         # the rolling shutter's velocity: the frame's own motion as its chain tracked it
         # (its last pose is in the chain's frame, not the map's), none for a lost frame
         rate = solver.rate(timestamp, frame, state.motion.times)
@@ -156,35 +152,37 @@ class Places:
             return solver.align(kf, fr, T_c_k, rate, last)
         reference = reference_share(state, config)
         for key, source in how.items():
-            entry = self.map[key]
-            if entry.landmarks is None:
-                continue
-            start = landmark_pose(entry.landmarks, kps, solver.intrinsics, ratio=QUERY_RATIO)
-            if start is None:
-                continue
-            start = refine_pose(entry.landmarks, kps, start, solver.intrinsics)
-            kf = _keyframe(entry)
-            out = align(kf, frame, start.T_c_k)
-            share = inlier_share(out)
-            standard = entry.share or reference or 1.0
-            if not (usable(out) and float(out.moved) <= basin_px(config)
-                    and share >= config.lost_share_ratio * standard):
-                continue
-            note = (f"found again: keyframe {key} ({source}, {start.inliers} ORB inliers, "
-                    f"inlier share {share:.2f}")
-            if share >= config.doubt_share_ratio * standard:
-                return Placed(kf, out, note + ")")
-            other = self._second(kf, out, frame, align, usable, reference)
-            if other is not None:
-                return Placed(kf, out, note + f", confirmed by keyframe {other})")
+            placed = self._found_on(key, source, kps, solver, frame, align, usable, reference)
+            if placed is not None:
+                return placed
         return None
 
-    def _second(self, kf: Keyframe, res, frame: Frame, align, usable,
-                reference: float | None) -> int | None:
-        """A second keyframe of the map that confirms the pose ``res`` gives against ``kf``
-        (``_confirmed`` by one of ``_confirmers(kf.id)``); its id, or None."""
-        return _confirmed(kf, res, self._confirmers(kf.id), frame, align, usable, reference,
-                          self.config)
+    def _found_on(self, key: int, source: str, kps, solver: Solver, frame: Frame, align,
+                  usable, reference: float | None) -> Placed | None:
+        """The frame placed on keyframe ``key`` from its landmarks' pose (module doc), or
+        None."""
+        config, entry = self.config, self.map[key]
+        if entry.landmarks is None:
+            return None
+        start = landmark_pose(entry.landmarks, kps, solver.intrinsics, ratio=QUERY_RATIO)
+        if start is None:
+            return None
+        start = refine_pose(entry.landmarks, kps, start, solver.intrinsics)
+        kf = _keyframe(entry)
+        out = align(kf, frame, start.T_c_k)
+        standard = entry.share or reference or 1.0
+        if not verified(out, usable, basin_px=basin_px(config), standard=standard,
+                        ratio=config.lost_share_ratio):
+            return None
+        note = (f"found again: keyframe {key} ({source}, {start.inliers} ORB inliers, "
+                f"inlier share {inlier_share(out):.2f}")
+        if verified(out, usable, basin_px=basin_px(config), standard=standard,
+                    ratio=config.doubt_share_ratio):
+            return Placed(kf, out, note + ")")
+        other = confirmed(kf, out, self._confirmers(kf.id), frame, align, usable, reference,
+                          config)
+        return None if other is None else Placed(kf, out,
+                                                 note + f", confirmed by keyframe {other})")
 
     def _confirmers(self, key: int, exclude=()) -> list[tuple[Keyframe, float | None]]:
         """The two anchored keyframes (not in ``exclude``) most covisible with keyframe
@@ -200,7 +198,12 @@ class Places:
         # a place left and seen again: not one the recent keyframes still see
         recent = set(ask.exclude)
         seen = recent.union(*(self.map.covisible(k) for k in recent if k in self.map))
-        found = self._seen_from(solver, state, frame, ask.pose, seen, timestamp)
+        candidates = self._candidates(ask.pose, seen)
+        if not candidates:
+            return None
+        align, usable = aligner(solver, state, frame, timestamp)
+        found = self._verified(align, usable, reference_share(state, self.config), frame,
+                               ask.pose, candidates)
         if found is None:
             return None
         kf, out, c = found
@@ -211,12 +214,12 @@ class Places:
              exclude: set[int], timestamp: float) -> Callable[[], Placed | None] | None:
         """The search for an older keyframe of the map, not in ``exclude``, that sees the new
         keyframe ``kf`` (made from ``frame``, after the frames of ``state``) at its pose
-        (``loops``): verified as ``revisit`` verifies, and confirmed as a doubtful frame found
-        again is (``_confirmed``: a keyframe covisible with the old one, not in ``exclude``,
-        places the frame within ``SECOND_M``, ``SECOND_DEG`` of the loop's pose). The
-        candidates are chosen now; what is returned aligns the frame to them and reads
-        nothing that changes (it may run on another thread): the solve of the frame against
-        the first that passes (``result.T_c_k``: T_kf_old), or None. None: no candidate."""
+        (``map.loops``): verified as ``revisit`` verifies, and confirmed as a doubtful frame
+        found again is (``confirmed``: a keyframe covisible with the old one, not in
+        ``exclude``). The candidates are chosen now; what is returned aligns the frame to
+        them and reads nothing that changes (it may run on another thread): the solve of the
+        frame against the first that passes (``result.T_c_k``: T_kf_old), or None. None: no
+        candidate."""
         candidates = self._candidates(kf.pose, exclude)
         if not candidates:
             return None
@@ -231,26 +234,14 @@ class Places:
                 if found is None:
                     continue
                 out = found[1]
-                other = _confirmed(old, out, confirmers[c.id], frame, align, usable, reference,
-                                   self.config)
+                other = confirmed(old, out, confirmers[c.id], frame, align, usable,
+                                  reference, self.config)
                 if other is not None:
                     return Placed(old, out, f"loop: keyframe {kf.id} to keyframe {c.id} "
                                   f"(predicted overlap {c.score:.2f}, inlier share "
                                   f"{inlier_share(out):.2f}, confirmed by keyframe {other})")
             return None
         return verify
-
-    def _seen_from(self, solver: Solver, state: TrackerState, frame: Frame, pose: np.ndarray,
-                   exclude, timestamp: float):
-        """The first of the two anchored keyframes (not in ``exclude``) that a camera at
-        ``pose`` (T_world_cam) sees best (``_candidates``) that the frame aligns to from
-        there (``_verified``); (its ``Keyframe``, the solve, its ``Candidate``) or None."""
-        candidates = self._candidates(pose, exclude)
-        if not candidates:
-            return None
-        align, usable = aligner(solver, state, frame, timestamp)
-        return self._verified(align, usable, reference_share(state, self.config), frame, pose,
-                              candidates)
 
     def _candidates(self, pose: np.ndarray, exclude) -> list[tuple[Keyframe, Candidate]]:
         """The two anchored keyframes (not in ``exclude``) a camera at ``pose`` (T_world_cam)
@@ -262,43 +253,31 @@ class Places:
     def _verified(self, align, usable, reference: float | None, frame: Frame, pose: np.ndarray,
                   candidates: list[tuple[Keyframe, Candidate]]):
         """The first candidate the frame, at ``pose``, aligns to (``align``, ``usable``:
-        ``effects.aligner``'s): usable, within the basin and not under the doubt ratio of
-        the recent share ``reference``; (its ``Keyframe``, the solve, its ``Candidate``) or
-        None."""
+        ``effects.aligner``'s) verified at the doubt ratio of the recent share ``reference``;
+        (its ``Keyframe``, the solve, its ``Candidate``) or None."""
         config = self.config
         for kf, c in candidates:
             out = align(kf, frame, inverse_np(pose) @ kf.pose)
-            if usable(out) and float(out.moved) <= basin_px(config) \
-                    and not under(out, reference, config.doubt_share_ratio):
+            if verified(out, usable, basin_px=basin_px(config), standard=reference,
+                        ratio=config.doubt_share_ratio):
                 return kf, out, c
         return None
 
-    # -- internals -------------------------------------------------------------------------
-    def settle(self) -> None:
-        """The keyframes described so far take their appearance, in the order they were
-        made (waiting for the worker where needed)."""
-        for key, future in self._pending:
-            appearance = future.result()
-            self.map.describe(key, appearance.landmarks, appearance.code)
-        self._pending.clear()
 
-
-def _confirmed(kf: Keyframe, res, confirmers: list[tuple[Keyframe, float | None]],
-               frame: Frame, align, usable, reference: float | None, config: Config
-               ) -> int | None:
+def confirmed(kf: Keyframe, res, confirmers: list[tuple[Keyframe, float | None]],
+              frame: Frame, align, usable, reference: float | None, config: Config
+              ) -> int | None:
     """The first of ``confirmers`` (keyframe, its standard share) that confirms the pose
-    ``res`` gives the frame against ``kf``: aligned from that pose, usable, in the basin, over
-    the lost ratio of its own standard and placing the frame within ``SECOND_M``,
-    ``SECOND_DEG`` of the same world pose; its id, or None."""
+    ``res`` gives the frame against ``kf``: aligned from that pose, verified at the lost
+    ratio of its own standard, and placing the frame within ``SECOND_M``, ``SECOND_DEG`` of
+    the same world pose; its id, or None."""
     pose = kf.pose @ inverse_np(np.asarray(res.T_c_k, np.float64))
     for other, share in confirmers:
         out = align(other, frame, inverse_np(pose) @ other.pose)
-        standard = share or reference or 1.0
-        if not (usable(out) and float(out.moved) <= basin_px(config)
-                and inlier_share(out) >= config.lost_share_ratio * standard):
-            continue
-        D = inverse_np(pose) @ other.pose @ inverse_np(np.asarray(out.T_c_k, np.float64))
-        if np.linalg.norm(D[:3, 3]) <= SECOND_M and np.degrees(rotation_angle_np(D)) <= SECOND_DEG:
+        if verified(out, usable, basin_px=basin_px(config), standard=share or reference or 1.0,
+                    ratio=config.lost_share_ratio) and agree(
+                pose, other.pose @ inverse_np(np.asarray(out.T_c_k, np.float64)),
+                metres=SECOND_M, degrees=SECOND_DEG):
             return other.id
     return None
 

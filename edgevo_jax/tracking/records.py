@@ -6,6 +6,7 @@ them are ``decision``'s."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
@@ -41,8 +42,10 @@ class Keyframe:
     later counts its interval from then); ``parent``: the keyframe the frame it was made
     from was tracked against (None: the first, or one made at a loss's guess). ``edges``
     (device arrays), ``frame`` (its ``Frame``; None for a keyframe taken from the map) and
-    ``keypoints`` (by kind, detected when recovery first needs them) are the driver's; the
-    decision never reads them."""
+    ``features`` (its image's keypoints, each kind detected once: ``frontend.features
+    .Detections``; None without a frame) are the driver's; the decision never reads them.
+    ``pose`` is the tracker's copy of the map's record (``map.poses``), followed each frame
+    (``decision.follow``)."""
 
     id: int
     timestamp: float
@@ -54,7 +57,7 @@ class Keyframe:
     parent: int | None = None
     edges: Any = field(default=None, compare=False, repr=False)
     frame: Any = field(default=None, compare=False, repr=False)
-    keypoints: dict = field(default_factory=dict, compare=False, repr=False)
+    features: Any = field(default=None, compare=False, repr=False)
 
     @property
     def current_since(self) -> float:
@@ -136,7 +139,7 @@ class Confirm(NamedTuple):
 
 
 class Relocalise(NamedTuple):
-    """Find the frame in the keyframe map (``relocalise.relocalise``): place recognition over
+    """Find the frame in the keyframe map (``places.Places.relocalise``): place recognition over
     its anchored keyframes and those a camera at ``guess`` (T_world_cam; None: none) would
     see, each aligned from a feature start and verified. ``motion``: the frame's motion
     from the last frame T_last_cur as its chain tracked it (the rolling shutter's velocity;
@@ -149,7 +152,7 @@ class Relocalise(NamedTuple):
 class Revisit(NamedTuple):
     """Does an older keyframe of the map, one not in ``exclude`` (ids), see the frame at
     ``pose`` (T_world_cam) well enough to take over from a new keyframe
-    (``relocalise.revisit``)? The answer is a ``Placed`` or None."""
+    (``places.Places.revisit``)? The answer is a ``Placed`` or None."""
 
     pose: np.ndarray
     exclude: tuple[int, ...]
@@ -179,7 +182,7 @@ class Tie(NamedTuple):
 
 
 class Handover(NamedTuple):
-    """Wait for every refinement handed to the window and give them (``Mapper.due(None)``)."""
+    """Wait for every refinement handed to the window and give them (``Window.due(None)``)."""
 
 
 class MakeKeyframe(NamedTuple):
@@ -203,31 +206,35 @@ class NewKeyframe(NamedTuple):
 
 @dataclass(frozen=True)
 class Evidence:
-    """The frame's facts, its solve and what the actions asked for so far gave. ``solve``: a
-    ``frontend.align.TrackResult`` on the host (None for a frame with no keyframe to solve
-    against); ``predicted``: the frame's predicted T_world_cam; ``prior``: its motion prior
-    T_prev_cur, if given. ``searched`` / ``found`` (a ``recovery.Found`` or None),
-    ``confirmed`` (None: not asked), ``handover`` (the window's refinements, ``Mapped``;
-    None: not asked), ``made`` (the ``MakeKeyframe`` answer; ``made_asked``),
-    ``intrinsics_moved`` (the window's intrinsics were taken in this frame), ``relocalised``
-    and ``revisited`` (the ``Relocalise`` and ``Revisit`` answers; ``*_asked``)."""
+    """The frame's facts, its solve and the answers of the actions asked for so far.
+    ``solve``: a ``frontend.align.TrackResult`` on the host (None for a frame with no
+    keyframe to solve against); ``predicted``: the frame's predicted T_world_cam; ``prior``:
+    its motion prior T_prev_cur, if given; ``intrinsics_moved``: the window's intrinsics were
+    taken in this frame. ``answers``: (action type, answer) pairs, one per action asked
+    (``answered``, ``asked``, ``answer``): ``Search`` a ``recovery.Found`` or None,
+    ``Confirm`` a bool, ``Handover`` the window's refinements (``window.worker.Refined``),
+    ``Relocalise`` and ``Revisit`` a ``Placed`` or None, ``MakeKeyframe`` a ``NewKeyframe``
+    or None."""
 
     facts: FrameFacts
     solve: Any
     predicted: np.ndarray
     prior: np.ndarray | None = None
     timing: Timing = Timing()
-    searched: bool = False
-    found: Any = None
-    confirmed: bool | None = None
-    handover: tuple | None = None
-    made_asked: bool = False
-    made: NewKeyframe | None = None
     intrinsics_moved: bool = False
-    relocalise_asked: bool = False
-    relocalised: Placed | None = None
-    revisit_asked: bool = False
-    revisited: Placed | None = None
+    answers: tuple[tuple[type, Any], ...] = ()
+
+    def answered(self, action: Any, answer: Any) -> Evidence:
+        """The evidence with ``action`` (an action record) answered by ``answer``."""
+        return dataclasses.replace(self, answers=(*self.answers, (type(action), answer)))
+
+    def asked(self, kind: type) -> bool:
+        """Whether an action of type ``kind`` was asked (and answered)."""
+        return any(k is kind for k, _ in self.answers)
+
+    def answer(self, kind: type) -> Any:
+        """The answer to the action of type ``kind`` (None where it was not asked)."""
+        return next((a for k, a in self.answers if k is kind), None)
 
 
 class Decision(NamedTuple):

@@ -29,13 +29,11 @@ import numpy as np
 from ..camera import Intrinsics
 from ..config import Config
 from ..frontend import features
+from ..frontend.features import Detections
 from ..geometry import inverse_np, scale_motion_np
 from ..image.preprocess import Frame
+from . import verify
 from .decision import inlier_share
-
-#: two alignments agree (converged into one minimum) within this translation (m) and rotation
-#: (degrees): ~2 px at 1.5 m for f ~ 530 px, under the spacing of distinct minima (edges)
-AGREE_M, AGREE_DEG = 0.005, 0.5
 
 
 class Found(NamedTuple):
@@ -48,11 +46,9 @@ class Found(NamedTuple):
 
 
 def agree(a, b) -> bool:
-    """Whether two TrackResults' poses T_cur_kf agree within ``AGREE_M``, ``AGREE_DEG``."""
-    D = inverse_np(np.asarray(a.T_c_k, np.float64)) @ np.asarray(b.T_c_k, np.float64)
-    cos = np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-    return bool(np.linalg.norm(D[:3, 3]) <= AGREE_M
-                and np.degrees(np.arccos(cos)) <= AGREE_DEG)
+    """Whether two TrackResults' poses T_cur_kf agree (``verify.agree``: within
+    ``verify.AGREE_M``, ``AGREE_DEG``)."""
+    return verify.agree(a.T_c_k, b.T_c_k)
 
 
 def motion_starts(poses: Sequence[np.ndarray], times: Sequence[float], timestamp: float
@@ -71,19 +67,16 @@ def motion_starts(poses: Sequence[np.ndarray], times: Sequence[float], timestamp
     return [last, *(last @ scale_motion_np(step, s) for s in [*scales, 2.0, 0.5])]
 
 
-def feature_start(kf: Any, frame: Frame, kind: str, intrinsics: Intrinsics, config: Config
-                  ) -> np.ndarray | None:
-    """T_cur_kf from keypoints of ``kind`` (``features.detect``) matched between a keyframe
-    (``.frame`` with its gray image and depth; ``.keypoints``, a dict by kind where its own
-    are kept once detected) and the frame, or None without gray images or a pose."""
-    if frame.gray is None or kf.frame is None or kf.frame.gray is None \
-            or kf.frame.depth is None:
+def feature_start(kf: Any, found: Detections | None, kind: str, intrinsics: Intrinsics,
+                  config: Config) -> np.ndarray | None:
+    """T_cur_kf from keypoints of ``kind`` matched between a keyframe (its ``.features``, a
+    ``features.Detections``, and its ``.frame``'s depth) and the frame (``found``: its
+    ``Detections``), or None without gray images, depth or a pose."""
+    if found is None or kf.features is None or kf.frame is None or kf.frame.depth is None:
         return None
-    if kind not in kf.keypoints:
-        kf.keypoints[kind] = features.detect(kf.frame.gray, kind=kind)
     return features.relative_pose(
-        kf.keypoints[kind], kf.frame.depth, features.detect(frame.gray, kind=kind),
-        intrinsics, min_depth=config.min_depth, max_depth=config.max_depth)
+        kf.features.get(kind), kf.frame.depth, found.get(kind), intrinsics,
+        min_depth=config.min_depth, max_depth=config.max_depth)
 
 
 def search(
@@ -91,13 +84,15 @@ def search(
     starts: Sequence[np.ndarray], align: Callable[[Any, Frame, np.ndarray], Any],
     usable: Callable[[Any], bool], good_enough: Callable[[Any], bool] | None,
     intrinsics: Intrinsics, config: Config, basin: float | None = None,
+    found: Detections | None = None,
 ) -> Found | None:
     """The recovery search (module doc). ``keyframes``: the current one first, then the
     earlier ones to try (each with ``.pose`` T_w_kf); ``first``: the solve from the
     prediction, None when it was unusable; ``predicted`` and ``starts`` (``motion_starts``)
     world poses; ``align(kf, frame, T_cur_kf)`` a solve; ``usable(res)`` whether a solve can
     be used; ``good_enough(res)`` whether it ends the search (None: nothing does, as before
-    any share was seen); ``basin`` (level-0 px; None: none): a solve that moved farther from
+    any share was seen); ``found``: the frame's keypoints (``features.Detections``; None:
+    no feature start); ``basin`` (level-0 px; None: none): a solve that moved farther from
     its start (``moved``) found a minimum it could not see from there and is no candidate.
     Returns the keyframe and solve with the highest inlier share (the first's when none beats
     it) and whether it is confirmed; None when nothing is usable."""
@@ -125,7 +120,7 @@ def search(
             better(kf, align(kf, frame, inverse_np(T_w_c) @ kf.pose), False)
         if kf is current and not settled() and config.recovery_features:
             for kind in ("orb", "sift"):
-                T_c_k = feature_start(kf, frame, kind, intrinsics, config)
+                T_c_k = feature_start(kf, found, kind, intrinsics, config)
                 if T_c_k is None:
                     continue
                 out = align(kf, frame, T_c_k)
@@ -151,15 +146,17 @@ def confirmed(res, solves: Sequence[tuple[Any, bool]]) -> bool:
 
 
 def confirm(frame: Frame, kf: Any, res, *, align: Callable[[Any, Frame, np.ndarray], Any],
-            usable: Callable[[Any], bool], intrinsics: Intrinsics, config: Config) -> bool:
+            usable: Callable[[Any], bool], intrinsics: Intrinsics, config: Config,
+            found: Detections | None) -> bool:
     """Whether an alignment of ``frame`` to ``kf`` from a feature start (ORB, then SIFT,
-    ``feature_start``) converges to the pose of the solve ``res`` (``agree``): independent
-    confirmation of a solve that went far from its start. False when no feature start
-    gives a usable solve there, or with ``Config.recovery_features`` off."""
+    ``feature_start``; ``found``: the frame's keypoints) converges to the pose of the solve
+    ``res`` (``agree``): independent confirmation of a solve that went far from its start.
+    False when no feature start gives a usable solve there, or with
+    ``Config.recovery_features`` off."""
     if not config.recovery_features:
         return False
     for kind in ("orb", "sift"):  # SIFT only where ORB finds no pose
-        T_c_k = feature_start(kf, frame, kind, intrinsics, config)
+        T_c_k = feature_start(kf, found, kind, intrinsics, config)
         if T_c_k is not None:
             out = align(kf, frame, T_c_k)
             return bool(usable(out) and agree(out, res))

@@ -1,5 +1,6 @@
 """What tracking gives per frame: the tracking states, ``FrameResult`` and the ``FrameResults``
-mixin of a run's results (timestamps, poses)."""
+mixin of a run's results (timestamps, poses); ``Correction`` (earlier poses moved,
+``map.poses``) and ``Refinement`` (a keyframe pose the window refined)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import Config
+from ..map.poses import Correction
+
+__all__ = ["LOST", "OK", "WEAK", "Correction", "FrameResult", "FrameResults", "Refinement"]
 
 OK, WEAK, LOST = "OK", "WEAK", "LOST"
 
@@ -41,22 +45,6 @@ class FrameResult:
     total_ms: float
     inlier_share: float | None = None
     placed: str | None = None
-
-
-@dataclass(frozen=True)
-class Correction:
-    """Earlier poses moved: frames ``first`` to ``last`` (indices, inclusive) take ``poses``
-    ((last - first + 1, 4, 4) T_world_cam). ``reason`` ``"tie"``: the keyframe map placed
-    the frame after ``last``, a chain of keyframes made at a guess moved into the map's
-    frame with it, and LOST frames were filled in between the tracked frames on either
-    side; ``"loop"``: a loop was closed, and the frames tracked from the keyframes the pose
-    graph moved moved with them (``last``: the last frame concluded). States and reasons
-    stay as they were reported."""
-
-    first: int
-    last: int
-    poses: np.ndarray
-    reason: str = "tie"
 
 
 @dataclass(frozen=True)

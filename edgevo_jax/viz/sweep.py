@@ -1,4 +1,4 @@
-"""The figure of a sweep's summary (``pipeline.sweep.write_summary(plot=plot_sweep)``)."""
+"""The figure of a sweep's summary (``runs.sweep.write_summary(plot=plot_sweep)``)."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """The sliding window of keyframes that the tracker hands each new keyframe to (EdgeVO's local
 mapping): activation, joint refinement, marginalisation, on the host around three jitted calls.
 
-On a new keyframe (``LocalMap.add_keyframe``):
+On a new keyframe (``SlidingWindow.add_keyframe``):
 1. Window full (``window_size`` keyframes): one keyframe leaves. The newest two always stay;
    of the others, one with under ``drop_visible_ratio`` of its edges visible in the newest
    keyframe goes (the fewest first), else the one whose centre is farthest from the newest's.
@@ -69,7 +69,7 @@ class _WindowKeyframe:
     rho_sensor: np.ndarray = field(default=None)  # type: ignore[assignment]
     activatable: np.ndarray = field(default=None)  # type: ignore[assignment]  # valid, continuous
     row_twist: np.ndarray = field(default=None)  # type: ignore[assignment]  # (6,) per row
-    key: object = None  # the caller's handle of the keyframe (``LocalMap.move``)
+    key: object = None  # the caller's handle of the keyframe (``SlidingWindow.move``)
 
     def __post_init__(self) -> None:
         k = self.rho.shape[0]
@@ -181,7 +181,7 @@ _marginalize_jit = program(_marginalize, static_argnames="config")
 
 
 @dataclass
-class LocalMap:
+class SlidingWindow:
     """The window of keyframes (module doc). ``intrinsics`` is the window's current estimate
     (fx, fy, cx, cy); ``add_keyframe`` returns the new keyframe's refined pose."""
 
@@ -273,7 +273,7 @@ class LocalMap:
                 grad=np.zeros((2, K), np.float32), valid=np.zeros(K, bool), dist0=field0,
                 edge_map=edge_map)
 
-        scratch = LocalMap(self.config, self.intrinsics, self.shape,
+        scratch = SlidingWindow(self.config, self.intrinsics, self.shape,
                            rolling_shutter=self.rolling_shutter)
         scratch.window = [empty() for _ in range(n - 1)]
         scratch._activate(empty())

@@ -1,4 +1,4 @@
-"""The per-frame decision (``pipeline.decision``), rule by rule, with plain numbers: no frame
+"""The per-frame decision (``tracking.decision``), rule by rule, with plain numbers: no frame
 is solved and nothing is compiled. Each case is an input (the state, the frame's solve and
 facts, the answers of the actions the decision asks for), the actions it asks for, the
 state it leads to and the reason it gives (the rules: docs/decisions.md, "Divergence checks
@@ -31,7 +31,7 @@ from edgevo_jax.tracking.decision import (
     TrackerState,
     begin_frame,
     decide,
-    refine,
+    follow,
 )
 
 CFG = Config(map=False)  # the odometry's rules; the map's: MAP below
@@ -103,23 +103,22 @@ def conclude(st: TrackerState, res, fa: FrameFacts, *, found="unused", confirmed
         asked.append(type(action))
         if isinstance(action, Search):
             assert found != "unused", "a search nobody expected"
-            ev = dataclasses.replace(ev, searched=True,
-                                     found=found(st, action) if callable(found) else found)
+            answer = found(st, action) if callable(found) else found
         elif isinstance(action, Confirm):
             assert confirmed is not None, "a confirmation nobody expected"
-            ev = dataclasses.replace(ev, confirmed=confirmed)
+            answer = confirmed
         elif isinstance(action, Handover):
-            ev = dataclasses.replace(ev, handover=tuple(handover))
+            answer = tuple(handover)
         elif isinstance(action, Relocalise):
             assert placed != "unused", "a map query nobody expected"
-            ev = dataclasses.replace(ev, relocalise_asked=True, relocalised=placed(
-                st, action) if callable(placed) else placed)
+            answer = placed(st, action) if callable(placed) else placed
         elif isinstance(action, Revisit):
             assert revisited != "unused", "a revisit nobody expected"
-            ev = dataclasses.replace(ev, revisit_asked=True, revisited=revisited)
+            answer = revisited
         else:
             assert isinstance(action, MakeKeyframe)
-            ev = dataclasses.replace(ev, made_asked=True, made=make(action) if make else None)
+            answer = make(action) if make else None
+        ev = ev.answered(action, answer)
     raise AssertionError(f"the decision asked for more than five actions: {asked}")
 
 
@@ -343,7 +342,7 @@ def test_begin_frame_takes_the_window_refinements():
     np.testing.assert_array_equal(s1.keyframe.pose, shift(x=0.1))
     for before, after in zip(s0.motion.poses, s1.motion.poses, strict=True):
         np.testing.assert_allclose(after, shift(x=0.1) @ before)
-    assert refine(s0, []) == s0
+    assert follow(s0, []) == s0
 
 
 # -- the keyframe map's rules (Config.map) ----------------------------------------------------

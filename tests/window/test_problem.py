@@ -19,7 +19,6 @@ from edgevo_jax.datasets import load_sequence
 from edgevo_jax.derive import MappingConfig, split_window, window_config
 from edgevo_jax.image.interp import stack_edge_maps
 from edgevo_jax.image.preprocess import frame_from_edges, preprocess
-from edgevo_jax.window.local_map import LocalMap, _refine_jit
 from edgevo_jax.window.prior import (
     append_keyframe_to_prior,
     marginalize_edges,
@@ -36,6 +35,7 @@ from edgevo_jax.window.problem import (
 )
 from edgevo_jax.window.refine import refine
 from edgevo_jax.window.schur import eliminate_diagonal, marginalize, schur_solve
+from edgevo_jax.window.sliding import SlidingWindow, _refine_jit
 
 refine_jit = jax.jit(refine, static_argnames=("config", "iterations"))
 residuals_jit = jax.jit(edge_residuals, static_argnames="eta")
@@ -475,7 +475,7 @@ def test_refine_with_a_config_refines_like_the_local_map(scene):
                            if jnp.issubdtype(a.dtype, jnp.floating) else a, problem)
     config = Config()
     h, w = scene["fields"].shape[1:]
-    local = LocalMap(config, np.asarray(s["intrinsics"], np.float32), (h, w))
+    local = SlidingWindow(config, np.asarray(s["intrinsics"], np.float32), (h, w))
     assert local._mcfg == window_config(config)
     assert (local._structure, [float(x) for x in local._numbers]) == (
         split_window(window_config(config))[0], [float(x) for x in split_window(

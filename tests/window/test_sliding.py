@@ -15,7 +15,7 @@ from edgevo_jax.frontend.selection import keyframe_edges
 from edgevo_jax.image.preprocess import preprocess
 from edgevo_jax.io import poses7_to_matrices
 from edgevo_jax.runs.run import run_sequence, summarise
-from edgevo_jax.window.local_map import LocalMap, depth_continuous
+from edgevo_jax.window.sliding import SlidingWindow, depth_continuous
 
 CONFIG = Config(mapping=True, window_size=3, mapping_iterations=3)
 
@@ -25,7 +25,7 @@ def driven():
     """Frames 0, 2, 4, 6, 8 of the bundled clip handed to a 3-keyframe window as keyframes at
     their ground-truth poses, the newest nudged by 4 mm (as tracking would leave it)."""
     seq = load_sequence(BUNDLED_CLIP)
-    lm = LocalMap(CONFIG, np.asarray(seq.intrinsics), (seq.height, seq.width))
+    lm = SlidingWindow(CONFIG, np.asarray(seq.intrinsics), (seq.height, seq.width))
     steps = []
     for n, i in enumerate(range(0, 10, 2)):
         frame = preprocess(*seq.load_frame(i), CONFIG)
@@ -123,7 +123,7 @@ def test_refinement_moves_poses_a_little_and_keeps_the_gauge(driven):
 def test_refinement_keeps_the_oldest_keyframe_fixed():
     """The gauge: a window refinement leaves the oldest keyframe's pose as it was."""
     seq = load_sequence(BUNDLED_CLIP)
-    lm = LocalMap(CONFIG, np.asarray(seq.intrinsics), (seq.height, seq.width))
+    lm = SlidingWindow(CONFIG, np.asarray(seq.intrinsics), (seq.height, seq.width))
     for n, i in enumerate((0, 3, 6)):
         frame = preprocess(*seq.load_frame(i), CONFIG)
         gt = poses7_to_matrices(np.asarray(

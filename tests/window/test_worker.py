@@ -17,7 +17,7 @@ from edgevo_jax.datasets import load_sequence
 from edgevo_jax.frontend import features
 from edgevo_jax.image.preprocess import preprocess, to_gray
 from edgevo_jax.tracking.odometry import Odometry
-from edgevo_jax.window import local_map
+from edgevo_jax.window import sliding as local_map
 
 TEDDY = "rgbd_dataset_freiburg3_teddy_first200"
 #: a small window that fills after three keyframes (refinement and marginalisation run)
@@ -48,16 +48,16 @@ def test_a_slow_worker_changes_nothing(teddy_frames, monkeypatch):
     config = SMALL.replace(mapping_lag=2)
     fast, keyframes = _track(seq, frames, config)
     assert keyframes > config.window_size  # the window filled, refined and marginalised
-    step = local_map.LocalMap.add_keyframe
+    step = local_map.SlidingWindow.add_keyframe
     rng = np.random.default_rng(0)
 
     def slow(self, *args, **kwargs):
         time.sleep(float(rng.uniform(0.0, 0.05)))
         return step(self, *args, **kwargs)
 
-    monkeypatch.setattr(local_map.LocalMap, "add_keyframe", slow)
+    monkeypatch.setattr(local_map.SlidingWindow, "add_keyframe", slow)
     slowed, _ = _track(seq, frames, config)
-    monkeypatch.setattr(local_map.LocalMap, "add_keyframe", step)
+    monkeypatch.setattr(local_map.SlidingWindow, "add_keyframe", step)
     assert np.array_equal(fast, slowed)
     inline, _ = _track(seq, frames, config.replace(mapping_lag=0))
     gap = np.linalg.norm(inline[:, :3, 3] - fast[:, :3, 3], axis=1)
