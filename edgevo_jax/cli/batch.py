@@ -81,9 +81,10 @@ def command(args: argparse.Namespace) -> int:
     from ..datasets.tum import load_sequence
     from ..io import matrices_to_poses7, write_trajectory
     from ..runs import batch
+    from ..runs.configs import changed_fields, load_configs
     from ..runs.run import summarise
 
-    configs = batch.load_configs(args.configs)
+    configs = load_configs(args.configs)
     seqs = [load_sequence(p) for p in (args.sequences or [BUNDLED_CLIP])]
     result = batch.evaluate(seqs, configs, chunk=args.chunk, max_frames=args.max_frames,
                             progress=not args.no_progress)
@@ -91,7 +92,7 @@ def command(args: argparse.Namespace) -> int:
     rows = []
     for run in result.runs:
         row = summarise(run, by_name[run.sequence])
-        row["changed"] = batch.changed_fields(run.config)
+        row["changed"] = changed_fields(run.config)
         if args.traj_dir is not None:
             args.traj_dir.mkdir(parents=True, exist_ok=True)
             path = args.traj_dir / f"{run.sequence}.c{run.config_index}.txt"
@@ -118,9 +119,42 @@ def _sweep(args: argparse.Namespace) -> int:
     """``edgevo batch SWEEP.toml --out DIR``: this process's part of the sweep (its share
     of the runs, then, as process 0, the summary); with --processes N, start processes
     1 .. N-1 first."""
-    from ..runs import processes as procs
     from ..runs import sweep as sw
 
+    joined = _check_sweep_args(args)
+    check_output(args.out, what="--out", folder=True)  # before anything runs
+    plan = sw.load_sweep(args.configs)
+    sw.open_sources(plan)  # every source opens before any process starts
+    args.out.mkdir(parents=True, exist_ok=True)
+    import jax
+
+    from ..programs import enable_cache
+
+    children = _join_processes(args, joined)
+    enable_cache()
+    index, count = jax.process_index(), jax.process_count()
+    tag = f"[process {index}/{count}] " if count > 1 else ""
+    t0 = time.perf_counter()
+    ran = _run_share(args, plan, children, tag)
+    if isinstance(ran, int):
+        return ran
+    share, records = ran
+    if count > 1:  # every process meets at the shutdown barrier; then children end
+        jax.distributed.shutdown()
+    for child in children:
+        child.wait()
+    print(f"{tag}{share.ran} runs tracked here, {share.skipped} already written, of "
+          f"{share.owned} of this process; {len(records)} runs in all in "
+          f"{time.perf_counter() - t0:.1f} s", flush=True)
+    if index == 0:
+        print(f"summary: {args.out / 'summary.md'} (and summary.csv, summary_settings.csv"
+              f"{', summary.png' if (args.out / 'summary.png').exists() else ''})")
+    return 0
+
+
+def _check_sweep_args(args: argparse.Namespace) -> bool:
+    """ValueError for options that do not go with a sweep file or with each other; whether
+    this process joins a sweep by --coordinator, --num-processes and --process-id."""
     if args.sequences:
         raise ValueError("a sweep file names its sources itself: drop the SEQUENCES "
                          f"({' '.join(map(str, args.sequences))}) or list them in its sources")
@@ -137,13 +171,16 @@ def _sweep(args: argparse.Namespace) -> int:
     if all(joined) and not 0 <= args.process_id < args.num_processes:
         raise ValueError(f"--process-id must be 0 .. {args.num_processes - 1}, got "
                          f"{args.process_id}")
-    check_output(args.out, what="--out", folder=True)  # before anything runs
-    plan = sw.load_sweep(args.configs)
-    sw.open_sources(plan)  # every source opens before any process starts
-    args.out.mkdir(parents=True, exist_ok=True)
+    return all(joined)
+
+
+def _join_processes(args: argparse.Namespace, joined: bool) -> list:
+    """Start jax.distributed as the options say: with --processes N, processes 1 .. N-1
+    started here (returned, to wait for) and this one as process 0; a process joining by
+    --coordinator (``joined``) or by --cluster; nothing for one process."""
     import jax
 
-    from ..programs import enable_cache
+    from ..runs import processes as procs
 
     children: list = []
     if args.processes > 1:
@@ -152,14 +189,20 @@ def _sweep(args: argparse.Namespace) -> int:
                    "--out", str(args.out), "--no-progress"]
         children = procs.start_processes(command, args.processes, coordinator)
         jax.distributed.initialize(coordinator, args.processes, 0)
-    elif all(joined):
+    elif joined:
         jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
     elif args.cluster:
         jax.distributed.initialize()
-    enable_cache()
-    index, count = jax.process_index(), jax.process_count()
-    tag = f"[process {index}/{count}] " if count > 1 else ""
-    t0 = time.perf_counter()
+    return children
+
+
+def _run_share(args: argparse.Namespace, plan, children: list, tag: str) -> tuple | int:
+    """Run this process's share of the sweep ``plan`` into --out, printing each run's line
+    (prefixed by ``tag``) as it finishes: (share, records) of ``sweep.run_sweep``, or the
+    exit code after an interruption (130) or a failed run (1); the children are killed
+    when this process gives up."""
+    from ..runs import processes as procs
+    from ..runs import sweep as sw
 
     def done(record: dict) -> None:
         ate = record["ate_rmse_m"]
@@ -169,9 +212,9 @@ def _sweep(args: argparse.Namespace) -> int:
     try:
         from ..viz.sweep import plot_sweep
 
-        share, records = sw.run_sweep(plan, args.out, progress=not args.no_progress,
-                                      check=procs.children_check(children), on_done=done,
-                                      plot=plot_sweep)
+        return sw.run_sweep(plan, args.out, progress=not args.no_progress,
+                            check=procs.children_check(children), on_done=done,
+                            plot=plot_sweep)
     except KeyboardInterrupt:
         print(f"edgevo: {tag}interrupted; finished runs are in {args.out}: run the same "
               "command again to go on", file=sys.stderr)
@@ -184,15 +227,3 @@ def _sweep(args: argparse.Namespace) -> int:
             for child in children:
                 if child.poll() is None:
                     child.kill()
-    if count > 1:  # every process meets at the shutdown barrier; then children end
-        jax.distributed.shutdown()
-    for child in children:
-        child.wait()
-    print(f"{tag}{share.ran} runs tracked here, {share.skipped} already written, of "
-          f"{share.owned} of this process; {len(records)} runs in all in "
-          f"{time.perf_counter() - t0:.1f} s", flush=True)
-    if index == 0:
-        print(f"summary: {args.out / 'summary.md'} (and summary.csv, summary_settings.csv"
-              f"{', summary.png' if (args.out / 'summary.png').exists() else ''})")
-    return 0
-

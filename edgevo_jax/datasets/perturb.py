@@ -36,7 +36,7 @@ from ..camera_file import write_camera_toml
 from ..depth_registration import register_depth
 from .calibration import CALIBRATION
 from .images import read_image
-from .tum import load_sequence, read_file_list
+from .tum import TumSequence, load_sequence, read_file_list
 
 __all__ = ["TRUE_CAMERA", "perturbed_copy"]
 
@@ -88,14 +88,7 @@ def perturbed_copy(
     src, dst = Path(src_dir), Path(dst_dir)
     if dst.exists():
         raise FileExistsError(f"perturbed copy: {dst} exists already (give a new folder)")
-    scale, offset = float(depth_scale), float(depth_time_offset_s)
-    if not (math.isfinite(scale) and scale > 0):
-        raise ValueError(f"depth_scale must be finite and > 0, got {depth_scale}")
-    if not math.isfinite(offset):
-        raise ValueError(f"depth_time_offset_s must be finite, got {depth_time_offset_s}")
-    for name, f in (("fx_factor", fx_factor), ("fy_factor", fy_factor)):
-        if not (math.isfinite(f) and f > 0):
-            raise ValueError(f"{name} must be finite and > 0, got {f}")
+    scale, offset = _checked_values(depth_scale, depth_time_offset_s, fx_factor, fy_factor)
     pose = None if depth_pose is None else checked_pose(depth_pose, "depth_pose")
     seq = load_sequence(src, camera=camera, depth_factor=depth_factor, check_images=False)
     if seq.depth_scale != 1.0 or seq.depth_time_offset_s != 0.0 or seq.T_color_depth is not None:
@@ -107,6 +100,39 @@ def perturbed_copy(
     truth = Camera(intr, distortion, seq.readout_s, scale, offset, pose).validate()
 
     dst.mkdir(parents=True)
+    rgb_rel, depth_rel = _copy_lists(src, dst, offset)
+    _write_rgb(seq, src, dst, rgb_rel, undistorted, link)
+    _write_depth(seq, src, dst, depth_rel, pose, scale, depth_factor, link)
+    _write_calibration(src, dst, intr, distortion, fx_factor, fy_factor)
+    injected: dict[str, object] = {
+        "perturbed_copy_of": str(src), "depth_scale": scale, "depth_time_offset_s": offset,
+        "fx_factor": float(fx_factor), "fy_factor": float(fy_factor),
+        "undistorted": undistorted}
+    if pose is not None:
+        injected["T_color_depth"] = [float(v) for v in pose.ravel()]
+    write_camera_toml(dst / TRUE_CAMERA, truth, source=injected)
+    return truth
+
+
+def _checked_values(depth_scale: float, depth_time_offset_s: float, fx_factor: float,
+                    fy_factor: float) -> tuple[float, float]:
+    """The depth scale (> 0) and the depth time offset (s) as floats, the focal-length
+    factors checked (> 0); ValueError naming the first bad value (all must be finite)."""
+    scale, offset = float(depth_scale), float(depth_time_offset_s)
+    if not (math.isfinite(scale) and scale > 0):
+        raise ValueError(f"depth_scale must be finite and > 0, got {depth_scale}")
+    if not math.isfinite(offset):
+        raise ValueError(f"depth_time_offset_s must be finite, got {depth_time_offset_s}")
+    for name, f in (("fx_factor", fx_factor), ("fy_factor", fy_factor)):
+        if not (math.isfinite(f) and f > 0):
+            raise ValueError(f"{name} must be finite and > 0, got {f}")
+    return scale, offset
+
+
+def _copy_lists(src: Path, dst: Path, offset: float) -> tuple[list[str], list[str]]:
+    """Copy rgb.txt and groundtruth.txt (if any) from ``src`` to ``dst``, and depth.txt with
+    its timestamps moved back by ``offset`` s (t_file = t_true - offset; as it is for 0).
+    Returns the rgb and the depth images' paths relative to the folder, in list order."""
     shutil.copy2(src / "rgb.txt", dst / "rgb.txt")
     if (src / "groundtruth.txt").is_file():
         shutil.copy2(src / "groundtruth.txt", dst / "groundtruth.txt")
@@ -119,9 +145,14 @@ def perturbed_copy(
                  f"{offset!r} s", "# timestamp filename"]
         lines += [f"{t - offset:.6f} {rel}" for t, rel in zip(depth_t, depth_rel, strict=True)]
         (dst / "depth.txt").write_text("\n".join(lines) + "\n")
+    return rgb_rel, depth_rel
 
+
+def _write_rgb(seq: TumSequence, src: Path, dst: Path, rgb_rel: list[str],
+               undistorted: bool, link: bool) -> None:
+    """The copy's rgb images (paths ``rgb_rel`` relative to the folders): undistorted onto
+    ``seq``'s pinhole intrinsics when ``undistorted``, else linked (``link``) or copied."""
     h, w = seq.height, seq.width
-    blank = np.zeros((h, w, 3), np.uint8)
     for rel in rgb_rel:
         if undistorted:
             bgr = read_image(src / rel, cv2.IMREAD_COLOR, "rgb")
@@ -129,6 +160,18 @@ def perturbed_copy(
             _write_png(dst / rel, bgr)
         else:
             _place(src / rel, dst / rel, link)
+
+
+def _write_depth(seq: TumSequence, src: Path, dst: Path, depth_rel: list[str],
+                 pose: np.ndarray | None, scale: float, depth_factor: float,
+                 link: bool) -> None:
+    """The copy's depth images (paths ``depth_rel``): linked or copied when nothing changes
+    them, else 16-bit PNGs of ``depth_factor`` units per metre holding the true depth (m)
+    divided by ``scale``, seen by a depth camera at ``pose`` (4, 4) T_color_depth when given
+    (rendered from the rectified source depth), clipped to 0 .. 65535."""
+    h, w = seq.height, seq.width
+    blank = np.zeros((h, w, 3), np.uint8)
+    intr = seq.intrinsics
     for rel in depth_rel:
         if pose is None and scale == 1.0:
             _place(src / rel, dst / rel, link)
@@ -142,16 +185,14 @@ def perturbed_copy(
         out = np.clip(np.rint(metres / scale * depth_factor), 0, 65535).astype(np.uint16)
         _write_png(dst / rel, out)
 
+
+def _write_calibration(src: Path, dst: Path, intr: Intrinsics, distortion,
+                       fx_factor: float, fy_factor: float) -> None:
+    """The copy's calibration.txt: fx * fx_factor, fy * fy_factor, cx, cy (pixels) and the
+    distortion coefficients (none for an undistorted copy), under a comment naming the true
+    camera's file."""
     fx, fy, cx, cy = intr
     numbers = [fx * fx_factor, fy * fy_factor, cx, cy, *(distortion or ())]
     (dst / CALIBRATION).write_text(
         f"# perturbed copy of {src.name}: fx x {fx_factor!r}, fy x {fy_factor!r}; the true "
         f"camera is {TRUE_CAMERA}\n" + " ".join(repr(float(v)) for v in numbers) + "\n")
-    injected: dict[str, object] = {
-        "perturbed_copy_of": str(src), "depth_scale": scale, "depth_time_offset_s": offset,
-        "fx_factor": float(fx_factor), "fy_factor": float(fy_factor),
-        "undistorted": undistorted}
-    if pose is not None:
-        injected["T_color_depth"] = [float(v) for v in pose.ravel()]
-    write_camera_toml(dst / TRUE_CAMERA, truth, source=injected)
-    return truth

@@ -253,6 +253,32 @@ def load_sequence(
     except on the first frame, which is always decoded).
     """
     root = Path(path)
+    _check_folder(root, depth_factor)
+    name = Path(os.path.abspath(root)).name  # normalise '.'/'..' but keep symlink names
+    cam, from_name = _folder_camera(root, name, camera, intrinsics, readout_s)
+    if not (isinstance(frame_step, int) and frame_step >= 1):
+        raise ValueError(f"frame_step must be a positive integer, got {frame_step!r}")
+    if frame_step > 1:
+        name = f"{name}_every{frame_step}"
+    rgb_t, depth_t, rgb_files, depth_files = _associated(root, cam, frame_step, max_diff)
+    groundtruth = _groundtruth(root)
+    if check_images:
+        check_files(rgb_files, depth_files)
+    first = read_image(rgb_files[0], cv2.IMREAD_COLOR, "rgb")
+    seq = TumSequence(
+        root=root, name=name, intrinsics=cam.intrinsics, distortion=cam.distortion,
+        depth_factor=float(depth_factor), timestamps=rgb_t, rgb_files=rgb_files,
+        depth_files=depth_files, groundtruth=groundtruth, width=int(first.shape[1]),
+        height=int(first.shape[0]), depth_timestamps=depth_t, readout_s=cam.readout_s,
+        depth_scale=cam.depth_scale, depth_time_offset_s=cam.depth_time_offset_s,
+        T_color_depth=cam.T_color_depth)
+    _check_decoded(seq, cam, from_name)
+    return seq
+
+
+def _check_folder(root: Path, depth_factor: float) -> None:
+    """FileNotFoundError unless ``root`` is a folder holding rgb.txt and depth.txt;
+    ValueError unless ``depth_factor`` (raw depth units per metre) is positive and finite."""
     if not root.is_dir():
         raise FileNotFoundError(f"TUM sequence folder not found: {root}")
     for fname in ("rgb.txt", "depth.txt"):
@@ -263,7 +289,14 @@ def load_sequence(
             )
     if not (math.isfinite(depth_factor) and depth_factor > 0):
         raise ValueError(f"depth_factor must be positive and finite, got {depth_factor}")
-    name = Path(os.path.abspath(root)).name  # normalise '.'/'..' but keep symlink names
+
+
+def _folder_camera(root: Path, name: str, camera: Camera | str | None,
+                   intrinsics: Intrinsics | None, readout_s: float | None
+                   ) -> tuple[Camera, bool]:
+    """The sequence's camera (``load_sequence``'s order: ``camera``, ``intrinsics``, the
+    folder's calibration.txt, the folder ``name``), its readout (s) replaced by
+    ``readout_s`` when given, and whether it came from the name."""
     cam = source_camera(camera=camera, intrinsics=intrinsics)
     from_name = cam is None and not (root / CALIBRATION).is_file()
     if from_name:
@@ -272,9 +305,15 @@ def load_sequence(
         cam = read_calibration(root / CALIBRATION)
     if readout_s is not None:
         cam = cam._replace(readout_s=readout_s).validate()
+    return cam, from_name
 
-    if not (isinstance(frame_step, int) and frame_step >= 1):
-        raise ValueError(f"frame_step must be a positive integer, got {frame_step!r}")
+
+def _associated(root: Path, cam: Camera, frame_step: int, max_diff: float
+                ) -> tuple[np.ndarray, np.ndarray, tuple[Path, ...], tuple[Path, ...]]:
+    """The associated rgb/depth pairs of ``root``'s lists (every ``frame_step``-th line of
+    each, depth times shifted by ``cam.depth_time_offset_s``, pairs within ``max_diff`` s):
+    their rgb timestamps (N,) s, depth timestamps (N,) s, rgb and depth files. ValueError
+    when no pair associates."""
     rgb_t, rgb_rel = read_file_list(root / "rgb.txt")
     depth_t, depth_rel = read_file_list(root / "depth.txt")
     if cam.depth_time_offset_s != 0.0:
@@ -282,7 +321,6 @@ def load_sequence(
     if frame_step > 1:
         rgb_t, rgb_rel = rgb_t[::frame_step], rgb_rel[::frame_step]
         depth_t, depth_rel = depth_t[::frame_step], depth_rel[::frame_step]
-        name = f"{name}_every{frame_step}"
     pairs = associate_timestamps(rgb_t, depth_t, max_diff)
     if pairs.shape[0] == 0:
         raise ValueError(
@@ -291,39 +329,29 @@ def load_sequence(
         )
     rgb_files = tuple(root / rgb_rel[i] for i in pairs[:, 0])
     depth_files = tuple(root / depth_rel[j] for j in pairs[:, 1])
+    return rgb_t[pairs[:, 0]], depth_t[pairs[:, 1]], rgb_files, depth_files
+
+
+def _groundtruth(root: Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """``root``'s groundtruth.txt as (timestamps (M,) s, poses7 (M, 7) T_world_cam), None
+    when there is none; ValueError naming the bad line otherwise."""
     gt_path = root / "groundtruth.txt"
-    groundtruth = None
-    if gt_path.is_file():
-        try:
-            groundtruth = read_trajectory(gt_path)
-        except ValueError as err:
-            raise ValueError(
-                f"ground truth {err} (fix it, or remove {gt_path.name} to run without ATE)"
-            ) from None
-    if check_images:
-        check_files(rgb_files, depth_files)
-    first = read_image(rgb_files[0], cv2.IMREAD_COLOR, "rgb")
-    seq = TumSequence(
-        root=root,
-        name=name,
-        intrinsics=cam.intrinsics,
-        distortion=cam.distortion,
-        depth_factor=float(depth_factor),
-        timestamps=rgb_t[pairs[:, 0]],
-        rgb_files=rgb_files,
-        depth_files=depth_files,
-        groundtruth=groundtruth,
-        width=int(first.shape[1]),
-        height=int(first.shape[0]),
-        depth_timestamps=depth_t[pairs[:, 1]],
-        readout_s=cam.readout_s,
-        depth_scale=cam.depth_scale,
-        depth_time_offset_s=cam.depth_time_offset_s,
-        T_color_depth=cam.T_color_depth,
-    )
+    if not gt_path.is_file():
+        return None
+    try:
+        return read_trajectory(gt_path)
+    except ValueError as err:
+        raise ValueError(
+            f"ground truth {err} (fix it, or remove {gt_path.name} to run without ATE)"
+        ) from None
+
+
+def _check_decoded(seq: TumSequence, cam: Camera, from_name: bool) -> None:
+    """The checks that need the image size and the first frame: ``cam``'s intrinsics against
+    the image's width and height (pixels) unless the camera came from the folder's name, and
+    frame 0 decoded in full (ValueError / FileNotFoundError as ``decode_frame``)."""
     if not from_name:  # (a name's Freiburg camera fits the benchmark's 640x480)
         cam.intrinsics.validate(width=seq.width, height=seq.height)
     with warnings.catch_warnings():  # an empty first depth warns when the run decodes it
         warnings.simplefilter("ignore", EmptyDepthWarning)
         seq.decode_frame(0)  # decoded in full once: what the headers cannot tell
-    return seq

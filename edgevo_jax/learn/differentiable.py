@@ -54,7 +54,6 @@ constant-velocity prediction; the losses that compare its poses with the ground 
 
 from __future__ import annotations
 
-from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -87,6 +86,7 @@ from ..geometry import Pose
 from ..image.interp import bicubic_with_grad
 from ..image.preprocess import Frame
 from ..solvers import LMState
+from .implicit import flat, implicit_pose, unflat
 from .params import Params, weighting_of
 
 ADJOINTS = ("unrolled", "implicit")
@@ -207,56 +207,6 @@ def _align(
     return state.x, state.system
 
 
-def _flat(T: Pose) -> jnp.ndarray:
-    """A pose's parameters as one array (12,): R row by row, then t."""
-    return jnp.concatenate([T.R.reshape(-1), T.t])
-
-
-def _unflat(x: jnp.ndarray) -> Pose:
-    return Pose(x[:9].reshape(3, 3), x[9:])
-
-
-def _tangent_cotangent(T: Pose, ct: jnp.ndarray) -> jnp.ndarray:
-    """Cotangent of the pose parameters (``_flat``, 12) -> of a left twist at T (6)."""
-    _, vjp = jax.vjp(lambda xi: _flat(T.retract(xi)), jnp.zeros(6, ct.dtype))
-    return vjp(ct)[0]
-
-
-@partial(jax.custom_vjp, nondiff_argnums=(0,))
-def _implicit_pose(stationarity, T_params: jnp.ndarray, inputs) -> jnp.ndarray:
-    """T* (``_flat`` parameters) unchanged; its VJP is the implicit function theorem on
-    ``stationarity(T, inputs) = 0`` (6,)."""
-    del stationarity, inputs
-    return T_params
-
-
-def _implicit_fwd(stationarity, T_params, inputs):
-    return T_params, (T_params, inputs)
-
-
-def _implicit_bwd(stationarity, res, ct):
-    T_params, inputs = res
-    T = _unflat(T_params)
-    ct_xi = _tangent_cotangent(T, ct)
-
-    def F_xi(xi):
-        return stationarity(T.retract(xi), inputs)[0]
-
-    A = jax.jacfwd(F_xi)(jnp.zeros(6, T_params.dtype))  # dF/dxi (6, 6), exact
-    F0, vjp_in, inliers = jax.vjp(lambda i: stationarity(T, i), inputs, has_aux=True)
-    ok = inliers >= 6  # otherwise no step was taken and T* is no stationary point
-    eye = jnp.eye(6, dtype=A.dtype)
-    eps = jnp.finfo(A.dtype).eps * (jnp.abs(jnp.trace(A)) + 1.0)
-    A = jnp.where(ok, A + eps * eye, eye)
-    adj = jnp.linalg.solve(A.T, ct_xi)
-    (ct_inputs,) = vjp_in(jnp.where(ok, -adj, 0.0))
-    del F0
-    return jnp.zeros_like(T_params), ct_inputs
-
-
-_implicit_pose.defvjp(_implicit_fwd, _implicit_bwd)
-
-
 class _Stationarity(NamedTuple):
     """F(T) = J^T W r at level 0 with the decisions in ``inputs`` fixed (aux: inliers); a
     hashable callable for custom_vjp's non-differentiable argument."""
@@ -291,6 +241,88 @@ def _as_arrays(kf: KeyframeEdges, dist, intr, mag):
     mag = kf.mag if mag is None else mag
     mag = jnp.zeros_like(kf.rho) if mag is None else jnp.asarray(mag, kf.rho.dtype)
     return intr, mag
+
+
+class _Inputs(NamedTuple):
+    """The inputs that the forward solve of ``track_differentiable`` reads: keyframe edges,
+    distance fields (one (H / 2**l, W / 2**l) array per level, pixels of the level), T_init
+    (4, 4) T_cur_kf, level-0 intrinsics (arrays), params and magnitudes (K,)."""
+
+    kf: KeyframeEdges
+    dist: tuple[jnp.ndarray, ...]
+    T_init: jnp.ndarray
+    intr: Intrinsics
+    params: Params
+    mag: jnp.ndarray
+
+
+def _solve_inputs(adjoint: str, kf: KeyframeEdges, dist, T_init, intr: Intrinsics,
+                  params: Params, mag: jnp.ndarray) -> _Inputs:
+    """The inputs as given (``adjoint="unrolled"``), or with their gradients stopped for
+    ``adjoint="implicit"``, whose forward pass runs without gradients."""
+    if adjoint == "implicit":  # the forward pass without gradients
+        inputs = jax.lax.stop_gradient((kf, dist, T_init, intr, params, mag))
+        return _Inputs(*inputs)
+    return _Inputs(kf, dist, T_init, intr, params, mag)
+
+
+def _coarse_to_fine(T: Pose, s: _Inputs, edge_map: jnp.ndarray, spec: _Spec,
+                    knobs: SolveKnobs, checkpoint: bool) -> tuple[Pose, LevelSystem]:
+    """The tracker's coarse-to-fine solve from T (T_cur_kf): ``config.iterations[l]`` LM
+    tries (``_align``) per level, coarsest first, each taking its hard decisions afresh at
+    every pose. Returns the pose and the last level-0 system."""
+    config = spec.config
+    for level in reversed(range(config.num_levels)):
+        data = _data_at(level, s.kf, s.dist, s.intr, s.mag)
+
+        def system_at(T, data=data, level=level):
+            mask, dots = _decisions(T, s.params, data, s.kf, edge_map, level, spec)
+            return _system(T, s.params, data, mask, dots, s.kf.valid, level, spec)
+
+        T, final = _align(T, system_at, config.iterations[level], knobs, checkpoint)
+    return T, final
+
+
+def _refine_rounds(T: Pose, final: LevelSystem, s: _Inputs, edge_map: jnp.ndarray,
+                   spec: _Spec, knobs: SolveKnobs, checkpoint: bool, rounds: int
+                   ) -> tuple[Pose, jnp.ndarray, jnp.ndarray, LevelSystem]:
+    """``rounds`` level-0 refinement rounds after the solve (module doc): the hard decisions
+    of level 0 at the solve's pose T; each round holds them for ``config.iterations[0]`` LM
+    tries (``settle``), then takes them again at the pose it reached. Returns the pose, the
+    decisions the last round held (mask (K,), dots (K,); with no round, those at T) and the
+    last system (``final`` with no round)."""
+    config = spec.config
+    data_s = _data_at(0, s.kf, s.dist, s.intr, s.mag)
+    mask, dots = _decisions(T, s.params, data_s, s.kf, edge_map, 0, spec)
+
+    def refine_round(T, mask, dots):
+        def system_at(T):
+            return _system(T, s.params, data_s, mask, dots, s.kf.valid, 0, spec)
+
+        return _align(T, system_at, config.iterations[0], knobs, checkpoint, settle=True)
+
+    def next_round(carry, _):  # a round; then the decisions at its pose, for the next one
+        T, mask, dots, _held = carry
+        T, final = refine_round(T, mask, dots)
+        decisions = _decisions(T, s.params, data_s, s.kf, edge_map, 0, spec)
+        return (T, *decisions, (mask, dots, final)), None
+
+    if rounds > 0:
+        (T, _, _, (mask, dots, final)), _ = jax.lax.scan(
+            next_round, (T, mask, dots, (mask, dots, final)), None, length=rounds)
+    return T, mask, dots, final
+
+
+def _implicit_at(T: Pose, params: Params, data: _EdgeData, mask: jnp.ndarray,
+                 dots: jnp.ndarray, kf: KeyframeEdges, spec: _Spec
+                 ) -> tuple[Pose, LevelSystem]:
+    """T (T_cur_kf) unchanged, its gradient through the implicit function theorem on the
+    level-0 stationarity with the decisions mask (K,), dots (K,) fixed (``_implicit_pose``),
+    and the level-0 system there (with the gradients of params and data)."""
+    f = data.pts_k.dtype
+    inputs = (params, data, mask.astype(f), dots, kf.valid.astype(f))
+    T = unflat(implicit_pose(_Stationarity(spec), flat(T), inputs))
+    return T, _system(T, params, data, mask, dots, kf.valid, 0, spec)
 
 
 def track_differentiable(
@@ -332,51 +364,15 @@ def track_differentiable(
     spec = _Spec(config, consistency, interpolation)
     intr, mag = _as_arrays(kf, dist, intr, mag)
     knobs = solve_knobs(config)
-    if adjoint == "implicit":  # the forward pass without gradients
-        inputs = jax.lax.stop_gradient((kf, dist, T_init, intr, params, mag))
-        kf_s, dist_s, T_init_s, intr_s, params_s, mag_s = inputs
-    else:
-        kf_s, dist_s, T_init_s, intr_s, params_s, mag_s = kf, dist, T_init, intr, params, mag
-
-    T = Pose.from_matrix(jnp.asarray(T_init_s, dist[0].dtype))
-    for level in reversed(range(config.num_levels)):
-        data = _data_at(level, kf_s, dist_s, intr_s, mag_s)
-
-        def system_at(T, data=data, level=level):
-            mask, dots = _decisions(T, params_s, data, kf_s, edge_map, level, spec)
-            return _system(T, params_s, data, mask, dots, kf_s.valid, level, spec)
-
-        T, final = _align(T, system_at, config.iterations[level], knobs, checkpoint)
-
-    # the hard decisions of level 0 at the solve's pose; each refinement round holds them
-    # for config.iterations[0] LM tries, then takes them again at the pose it reached (the
-    # last round's stay, for the implicit adjoint)
-    data_s = _data_at(0, kf_s, dist_s, intr_s, mag_s)
-    mask, dots = _decisions(T, params_s, data_s, kf_s, edge_map, 0, spec)
-
-    def refine_round(T, mask, dots):
-        def system_at(T):
-            return _system(T, params_s, data_s, mask, dots, kf_s.valid, 0, spec)
-
-        return _align(T, system_at, config.iterations[0], knobs, checkpoint, settle=True)
-
-    def next_round(carry, _):  # a round; then the decisions at its pose, for the next one
-        T, mask, dots, _held = carry
-        T, final = refine_round(T, mask, dots)
-        decisions = _decisions(T, params_s, data_s, kf_s, edge_map, 0, spec)
-        return (T, *decisions, (mask, dots, final)), None
-
-    if refine > 0:
-        (T, _, _, (mask, dots, final)), _ = jax.lax.scan(
-            next_round, (T, mask, dots, (mask, dots, final)), None, length=refine)
-
+    s = _solve_inputs(adjoint, kf, dist, T_init, intr, params, mag)
+    T = Pose.from_matrix(jnp.asarray(s.T_init, dist[0].dtype))
+    T, final = _coarse_to_fine(T, s, edge_map, spec, knobs, checkpoint)
+    T, mask, dots, final = _refine_rounds(T, final, s, edge_map, spec, knobs, checkpoint,
+                                          refine)
     data = _data_at(0, kf, dist, intr, mag)
     if adjoint == "implicit":  # the stationarity of the decisions at (or held to) T
-        f = data.pts_k.dtype
-        inputs = (params, data, mask.astype(f), dots, kf.valid.astype(f))
-        T = _unflat(_implicit_pose(_Stationarity(spec), _flat(T), inputs))
-        final = _system(T, params, data, mask, dots, kf.valid, 0, spec)
-    start = Pose.from_matrix(jnp.asarray(T_init_s, dist[0].dtype))
+        T, final = _implicit_at(T, params, data, mask, dots, kf, spec)
+    start = Pose.from_matrix(jnp.asarray(s.T_init, dist[0].dtype))
     return track_result(T, final, data.pts_k, kf, dist[0].shape, intr, start)
 
 

@@ -34,14 +34,12 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
-import json
 import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from functools import cache, partial
-from pathlib import Path
 
 import jax
 import numpy as np
@@ -61,6 +59,7 @@ from ..image.preprocess import Frame, preprocess
 from ..programs import enable_cache, program
 from ..tracking.odometry import Odometry
 from ..tracking.results import FrameResult, FrameResults
+from .configs import changed_fields, configs_from_spec, load_configs  # noqa: F401 (batch.*)
 from .run import conclude_chunk, initial_pose
 
 #: Config fields that change the pre-processed frames (runs differing in them do not share).
@@ -171,6 +170,22 @@ class _Lane:
         return self.position >= len(self.timestamps)
 
 
+@dataclass
+class _Call:
+    """What every device call of a batch shares: the compiled step (``_batched``), the runs
+    axis' sharding (None on one device), the frame sources, ``chunk`` frames per run per
+    call, ``width`` (chunk + max_lag) frames of each source's window, the device count and
+    whether the runs carry rolling-shutter rates."""
+
+    step: Callable
+    sharding: NamedSharding | None
+    srcs: list[_Frames]
+    chunk: int
+    width: int
+    num_devices: int
+    shutter: bool
+
+
 def _preprocess_key(config: Config) -> tuple:
     return tuple(getattr(config, f) for f in PREPROCESS_FIELDS)
 
@@ -251,20 +266,65 @@ def evaluate(
     if chunk < 1:
         raise ValueError(f"chunk must be positive, got {chunk}")
     max_lag = chunk if max_lag is None else max_lag
+    pairs = _checked_pairs(sequences, configs, runs)
+    static = _structure([configs[c] for _, c in pairs] or configs)
+    t_start = time.perf_counter()
+    sources, mine = _lanes(sequences, configs, pairs, max_frames)
+    devices = list(jax.local_devices() if devices is None else devices)
+    sharding = _runs_sharding(devices)
+    # one program for all: rolling-shutter rates for every run when any run has one (a
+    # rate of 0 is a global shutter's solve, to the bit)
+    call = _Call(_batched(static, chunk, sharding), sharding, list(sources.values()), chunk,
+                 chunk + max_lag, len(devices), any(lane.odo.readout_s > 0 for lane in mine))
+    total = sum(len(lane.timestamps) for lane in mine)
+    bar = tqdm(total=total, desc="batch", unit="frame", disable=not progress, leave=False)
+    calls = solved = 0
+    try:
+        while True:
+            _track_first_frames(mine, bar)
+            _report_finished(mine, t_start, on_run)
+            live = [lane for lane in mine if not lane.done]
+            if not live:
+                break
+            slowest, stepping = _windows(call, mine, live, max_lag)
+            made, frames = _step_groups(call, mine, slowest, stepping, bar)
+            calls, solved = calls + made, solved + frames
+            _drop_passed(call.srcs, mine)
+    finally:
+        bar.close()
+        for lane in mine:
+            lane.odo.close()
+            lane.run.num_keyframes = lane.odo.num_keyframes
+    return BatchResult(runs=[lane.run for lane in mine], wall_s=time.perf_counter() - t_start,
+                       calls=calls, solved=solved, devices=[str(d) for d in devices])
+
+
+def _checked_pairs(sequences: Sequence[Source], configs: Sequence[Config],
+                   runs: Sequence[tuple[int, int]] | None) -> list[tuple[int, int]]:
+    """The (sequence index, configuration index) pairs to track, in order: ``runs``, or
+    every pair sequence-major (this process's share ``process_index::process_count``).
+    ValueError when the sequences' image sizes (H, W) differ or a pair names no sequence
+    and configuration."""
     sizes = {(s.height, s.width) for s in sequences}
     if len(sizes) != 1:
         raise ValueError(f"all sequences of a batch need one image size, got {sorted(sizes)}")
     if runs is None:
         pairs = list(itertools.product(range(len(sequences)), range(len(configs))))
-        pairs = pairs[jax.process_index()::jax.process_count()]
-    else:
-        pairs = list(runs)
-        bad = [p for p in pairs if not (0 <= p[0] < len(sequences) and 0 <= p[1] < len(configs))]
-        if bad:
-            raise ValueError(f"runs {bad} name no (sequence, configuration) of "
-                             f"{len(sequences)} sequences and {len(configs)} configurations")
-    static = _structure([configs[c] for _, c in pairs] or configs)
-    t_start = time.perf_counter()
+        return pairs[jax.process_index()::jax.process_count()]
+    pairs = list(runs)
+    bad = [p for p in pairs if not (0 <= p[0] < len(sequences) and 0 <= p[1] < len(configs))]
+    if bad:
+        raise ValueError(f"runs {bad} name no (sequence, configuration) of "
+                         f"{len(sequences)} sequences and {len(configs)} configurations")
+    return pairs
+
+
+def _lanes(sequences: Sequence[Source], configs: Sequence[Config],
+           pairs: list[tuple[int, int]], max_frames: int | None
+           ) -> tuple[dict[tuple, _Frames], list[_Lane]]:
+    """A lane per pair (its run, its own ``Odometry`` from the sequence's initial pose, its
+    first ``max_frames`` timestamps (s)), and the frame sources they read, one per sequence
+    and preprocessing setting (key: (sequence index, ``_preprocess_key``)), shared."""
     sources: dict[tuple, _Frames] = {}
     mine: list[_Lane] = []
     for s, c in pairs:
@@ -277,72 +337,80 @@ def evaluate(
         odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq),
                        readout_s=camera_readout(seq))
         mine.append(_Lane(run, odo, sources[key], np.asarray(seq.timestamps[:n])))
-    devices = list(jax.local_devices() if devices is None else devices)
-    sharding = (NamedSharding(Mesh(np.array(devices), ("runs",)), PartitionSpec("runs"))
-                if len(devices) > 1 else None)
-    step = _batched(static, chunk, sharding)
-    # one program for all: rolling-shutter rates for every run when any run has one (a
-    # rate of 0 is a global shutter's solve, to the bit)
-    shutter = any(lane.odo.readout_s > 0 for lane in mine)
-    srcs = list(sources.values())
-    total = sum(len(lane.timestamps) for lane in mine)
-    bar = tqdm(total=total, desc="batch", unit="frame", disable=not progress, leave=False)
+    return sources, mine
+
+
+def _runs_sharding(devices: list[jax.Device]) -> NamedSharding | None:
+    """The runs axis sharded over ``devices`` (a one-axis mesh ``("runs",)``); None for a
+    single device (the kept program)."""
+    return (NamedSharding(Mesh(np.array(devices), ("runs",)), PartitionSpec("runs"))
+            if len(devices) > 1 else None)
+
+
+def _track_first_frames(lanes: list[_Lane], bar: tqdm) -> None:
+    """Track, frame by frame on the host, each run's first frames (and the frames before any
+    usable keyframe): those the batch step cannot solve without a keyframe."""
+    for lane in lanes:
+        while not lane.done and not lane.odo.has_keyframe:
+            i = lane.position
+            lane.run.results.append(lane.odo.track_frame(lane.frames[i], lane.timestamps[i]))
+            lane.position += 1
+            bar.update(1)
+
+
+def _windows(call: _Call, lanes: list[_Lane], live: list[_Lane], max_lag: int
+             ) -> tuple[list[int], list[bool]]:
+    """Each source's window start (the position of the slowest ``live`` run reading it, 0
+    when none does), its frames made ahead, and which runs step now: the runs not done and
+    at most ``max_lag`` frames ahead of their window's start (a run further ahead waits:
+    bounded memory, fixed shapes)."""
+    slowest = [min((la.position for la in live if la.frames is src), default=0)
+               for src in call.srcs]
+    for src, low in zip(call.srcs, slowest, strict=True):
+        src.prefetch(low + 2 * call.width)
+    stepping = [not lane.done and lane.position - slowest[call.srcs.index(lane.frames)]
+                <= max_lag for lane in lanes]
+    return slowest, stepping
+
+
+def _step_groups(call: _Call, lanes: list[_Lane], slowest: list[int], stepping: list[bool],
+                 bar: tqdm) -> tuple[int, int]:
+    """One device call per keyframe edge count K among the runs with a keyframe (padding K
+    would change XLA's summation order and so the trajectory; grouped, each run gives what
+    it gives alone), for the groups with a run ``stepping``; each stepping run's chunk is
+    then concluded in order. Returns the number of calls and of lane-frames solved."""
+    groups: dict[int, list[int]] = {}
+    for b, lane in enumerate(lanes):
+        if lane.odo.num_keyframes:
+            groups.setdefault(lane.odo.solve_inputs()[0].valid.shape[0], []).append(b)
     calls = solved = 0
-    try:
-        while True:
-            for lane in mine:  # first frames (and frames before any usable keyframe)
-                while not lane.done and not lane.odo.has_keyframe:
-                    i = lane.position
-                    lane.run.results.append(
-                        lane.odo.track_frame(lane.frames[i], lane.timestamps[i]))
-                    lane.position += 1
-                    bar.update(1)
-            _report_finished(mine, t_start, on_run)
-            live = [lane for lane in mine if not lane.done]
-            if not live:
-                break
-            # each source's window: frames slowest .. slowest + chunk + max_lag of the runs
-            # reading it; a run further ahead waits (bounded memory, fixed shapes)
-            slowest = [min((la.position for la in live if la.frames is src), default=0)
-                       for src in srcs]
-            for src, low in zip(srcs, slowest, strict=True):
-                src.prefetch(low + 2 * (chunk + max_lag))
-            stepping = [not lane.done and lane.position - slowest[srcs.index(lane.frames)]
-                        <= max_lag for lane in mine]
-            # one call per keyframe edge count K: padding K would change XLA's summation
-            # order and so the trajectory; grouped, each run gives what it gives alone
-            groups: dict[int, list[int]] = {}
-            for b, lane in enumerate(mine):
-                if lane.odo.num_keyframes:
-                    groups.setdefault(lane.odo.solve_inputs()[0].valid.shape[0], []).append(b)
-            for members in groups.values():
-                if not any(stepping[b] for b in members):
-                    continue
-                inputs = _stack_inputs([mine[b] for b in members], srcs, slowest,
-                                       chunk + max_lag, len(devices), chunk, shutter)
-                if sharding is not None:
-                    per_run = jax.device_put([*inputs[:1], *inputs[3:]], sharding)
-                    inputs = (per_run[0], *inputs[1:3], *per_run[1:])
-                out = to_host(step(*inputs))
-                calls += 1
-                solved += sum(stepping[b] for b in members) * chunk
-                # runs are independent: each one's conclusions go in order on one thread
-                jobs = [_concluders().submit(_conclude_chunk, mine[b],
-                                             jax.tree.map(lambda a, k=k: a[k], out), chunk, bar)
-                        for k, b in enumerate(members) if stepping[b]]
-                wait(jobs)  # both finish before an error in either is raised
-                for job in jobs:
-                    job.result()
-            for src in sources.values():
-                users = [lane.position for lane in mine if lane.frames is src and not lane.done]
-                src.drop_before(min(users) if users else 1 << 62)
-    finally:
-        bar.close()
-        for lane in mine:
-            lane.odo.close()
-            lane.run.num_keyframes = lane.odo.num_keyframes
-    return BatchResult(runs=[lane.run for lane in mine], wall_s=time.perf_counter() - t_start,
-                       calls=calls, solved=solved, devices=[str(d) for d in devices])
+    for members in groups.values():
+        if not any(stepping[b] for b in members):
+            continue
+        inputs = _stack_inputs([lanes[b] for b in members], call.srcs, slowest, call.width,
+                               call.num_devices, call.chunk, call.shutter)
+        if call.sharding is not None:
+            per_run = jax.device_put([*inputs[:1], *inputs[3:]], call.sharding)
+            inputs = (per_run[0], *inputs[1:3], *per_run[1:])
+        out = to_host(call.step(*inputs))
+        calls += 1
+        solved += sum(stepping[b] for b in members) * call.chunk
+        # runs are independent: each one's conclusions go in order on one thread
+        jobs = [_concluders().submit(_conclude_chunk, lanes[b],
+                                     jax.tree.map(lambda a, k=k: a[k], out), call.chunk, bar)
+                for k, b in enumerate(members) if stepping[b]]
+        wait(jobs)  # both finish before an error in either is raised
+        for job in jobs:
+            job.result()
+    return calls, solved
+
+
+def _drop_passed(srcs: list[_Frames], lanes: list[_Lane]) -> None:
+    """Drop each source's frames before the position of the slowest unfinished run reading
+    it (all of them when no such run is left)."""
+    for src in srcs:
+        users = [lane.position for lane in lanes if lane.frames is src and not lane.done]
+        src.drop_before(min(users) if users else 1 << 62)
 
 
 def _report_finished(lanes: list[_Lane], t_start: float,
@@ -404,59 +472,3 @@ def _stack_inputs(lanes: list[_Lane], srcs: list[_Frames], slowest: list[int], w
     window_ng = stack_edge_maps([stack_edge_maps([f.edge_map for f in fs]) for fs in frames])
     return (kf, window_dist, window_ng, source, offset, A, B, Intrinsics(*intr.T), knobs,
             rates)
-
-
-def load_configs(path: str | Path, base: Config | None = None) -> list[Config]:
-    """Configurations from a JSON file (see ``configs_from_spec`` for the two forms)."""
-    path = Path(path)
-    try:
-        spec = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path}: not valid JSON ({err})") from None
-    try:
-        return configs_from_spec(spec, base)
-    except ValueError as err:
-        raise ValueError(f"{path}: {err}") from None
-
-
-def configs_from_spec(spec: list | dict, base: Config | None = None) -> list[Config]:
-    """Configurations from a list of objects of Config overrides, e.g.
-    ``[{}, {"huber_delta": [2, 2, 2]}]``, or a grid ``{"base": {...}, "grid": {"eta": [0.5,
-    0.6], "num_edges": [256, 512]}}`` (every combination, the last key varying fastest),
-    applied to ``base`` (default ``Config()``). Values are parsed like ``--set`` (lists for
-    tuple fields). ValueError naming the problem for anything else."""
-    base = Config() if base is None else base
-    if isinstance(spec, dict) and set(spec) <= {"base", "grid"}:
-        root = base.with_overrides(_as_items(spec.get("base", {})))
-        grid = spec.get("grid", {})
-        if not isinstance(grid, dict) or not all(isinstance(v, list) and v
-                                                 for v in grid.values()):
-            raise ValueError("'grid' must map Config fields to non-empty lists")
-        keys = list(grid)
-        return [root.with_overrides(_as_items(dict(zip(keys, combo, strict=True))))
-                for combo in itertools.product(*(grid[k] for k in keys))]
-    if isinstance(spec, list) and spec and all(isinstance(x, dict) for x in spec):
-        return [base.with_overrides(_as_items(x)) for x in spec]
-    raise ValueError("expected a non-empty list of objects of Config overrides, or "
-                     '{"base": {...}, "grid": {"field": [values, ...]}}')
-
-
-def _as_items(overrides: dict) -> list[str]:
-    """{"eta": 0.5, "huber_delta": [2, 2, 2]} -> ["eta=0.5", "huber_delta=2,2,2"]."""
-    if not isinstance(overrides, dict):
-        raise ValueError(f"expected an object of Config overrides, got {overrides!r}")
-    items = []
-    for key, value in overrides.items():
-        if isinstance(value, list):
-            value = ",".join(str(v) for v in value)
-        elif isinstance(value, bool):
-            value = "true" if value else "false"
-        items.append(f"{key}={value}")
-    return items
-
-
-def changed_fields(config: Config, base: Config | None = None) -> dict:
-    """The fields of ``config`` that differ from ``base`` (default ``Config()``)."""
-    default = Config() if base is None else base
-    return {f.name: getattr(config, f.name) for f in dataclasses.fields(config)
-            if getattr(config, f.name) != getattr(default, f.name)}

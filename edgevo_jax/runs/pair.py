@@ -12,7 +12,7 @@ check of ``Odometry``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import jax
@@ -23,6 +23,7 @@ from ..config import Config
 from ..derive import basin_px, solve_knobs, solve_structure
 from ..frontend.align import track
 from ..frontend.depth import depth_points
+from ..frontend.features import Detections
 from ..frontend.selection import KeyframeEdges, keyframe_edges
 from ..geometry import orthonormalise_np
 from ..hostmem import to_host
@@ -60,11 +61,12 @@ class AlignResult(NamedTuple):
 
 @dataclass
 class _Source:
-    """The source frame as the keyframe of the solve (what ``recovery.confirm`` reads)."""
+    """The source frame as the keyframe of the solve (what ``recovery.confirm`` reads: its
+    frame, edges and keypoints, ``features.Detections``; None without a gray image)."""
 
     frame: Frame
     edges: KeyframeEdges
-    keypoints: dict = field(default_factory=dict)
+    features: Detections | None = None
 
 
 
@@ -139,6 +141,35 @@ def align(
     rigid transform (wrong shape, NaN, a rotation block off SO(3)) and bad intrinsics.
     """
     config = Config() if config is None else config
+    intr, images = _checked_inputs(source_rgb, source_depth, target_rgb, target_depth,
+                                   intrinsics, depth_scale, config)
+    T_init = np.eye(4) if init is None else rigid_transform(init, name="init")
+
+    enable_cache()  # as every tracker: programs kept on disk, the CLI's arithmetic
+    release_compiled()  # a process that solved under many configurations: room first
+    source = preprocess(images["source_rgb"], images["source_depth"], config)
+    target = preprocess(images["target_rgb"], images["target_depth"], config)
+    edges = keyframe_edges(source, config, seed=config.seed, T_prior=T_init, intr=intr)
+    n = int(edges.valid.sum())
+    if n < config.min_inliers:
+        return _lost(T_init, f"too few source edges with depth ({n})")
+    kf = _Source(source, jax.device_put(_with_depth_points(edges, source, intr, config)),
+                 None if source.gray is None else Detections(source.gray))
+    solve = _solver(intr, config)
+    res = solve(kf, target, T_init)
+    lost = lost_reason(target.num_edges, res, config)
+    if lost is not None:
+        return _lost(T_init, lost, int(res.inliers), inlier_share(res))
+    return _usable(res, _doubt(target, kf, res, solve, intr, config))
+
+
+def _checked_inputs(source_rgb, source_depth, target_rgb, target_depth, intrinsics,
+                    depth_scale: float | None, config: Config
+                    ) -> tuple[Intrinsics, dict[str, np.ndarray]]:
+    """``align``'s arguments checked: the intrinsics (fx, fy, cx, cy in pixels, valid for the
+    images' size) and the four images by name (rgb uint8 as given; depth (H, W) in metres,
+    ``_depth``), all of one size (H, W), the source with some depth within the config's
+    range. ValueError naming the argument otherwise."""
     try:
         intr = Intrinsics(*(float(x) for x in intrinsics))
     except (TypeError, ValueError) as err:
@@ -161,21 +192,24 @@ def align(
         raise ValueError(f"source_depth has no depth within [{config.min_depth:g}, "
                          f"{config.max_depth:g}] m (Config.min_depth, max_depth): nothing "
                          "to align; raw sensor units need depth_scale")
-    T_init = np.eye(4) if init is None else rigid_transform(init, name="init")
+    return intr, images
 
-    enable_cache()  # as every tracker: programs kept on disk, the CLI's arithmetic
-    release_compiled()  # a process that solved under many configurations: room first
-    source = preprocess(images["source_rgb"], src_depth, config)
-    target = preprocess(images["target_rgb"], images["target_depth"], config)
-    edges = keyframe_edges(source, config, seed=config.seed, T_prior=T_init, intr=intr)
-    n = int(edges.valid.sum())
-    if n < config.min_inliers:
-        return _lost(T_init, f"too few source edges with depth ({n})")
-    if config.depth_residual:
-        edges = edges._replace(**dict(zip(("depth_pts", "depth_normals"), depth_points(
-            source.depth, intr, config.depth_points, min_depth=config.min_depth,
-            max_depth=config.max_depth, seed=config.seed), strict=True)))
-    kf = _Source(source, jax.device_put(edges))
+
+def _with_depth_points(edges: KeyframeEdges, source: Frame, intr: Intrinsics,
+                       config: Config) -> KeyframeEdges:
+    """The source's edges with its depth points and normals (source camera, metres) added
+    for the depth residual when ``Config.depth_residual``, else as they are."""
+    if not config.depth_residual:
+        return edges
+    return edges._replace(**dict(zip(("depth_pts", "depth_normals"), depth_points(
+        source.depth, intr, config.depth_points, min_depth=config.min_depth,
+        max_depth=config.max_depth, seed=config.seed), strict=True)))
+
+
+def _solver(intr: Intrinsics, config: Config):
+    """The pair's solve as ``recovery.confirm`` calls it: (keyframe ``_Source``, target
+    Frame, T_c_k (4, 4) T_target_source, metres) -> the host copy of ``align.track``'s
+    TrackResult (a global-shutter solve, the program shared with ``Odometry``)."""
     structure, knobs = solve_structure(config), solve_knobs(config)
 
     def solve(k: _Source, frame: Frame, T_c_k: np.ndarray):
@@ -183,21 +217,32 @@ def align(
                                   np.asarray(T_c_k, np.float32), intr, config=structure,
                                   knobs=knobs, shutter=None))
 
-    res = solve(kf, target, T_init)
-    lost = lost_reason(target.num_edges, res, config)
-    if lost is not None:
-        return _lost(T_init, lost, int(res.inliers), inlier_share(res))
+    return solve
+
+
+def _doubt(target: Frame, kf: _Source, res, solve, intr: Intrinsics, config: Config
+           ) -> str | None:
+    """Why a usable solve ``res`` of the pair is WEAK (``decision.weak_reason``, or no
+    confirmation by matched features, ``recovery.confirm``), None when it is OK."""
     reason = weak_reason(bool(np.any(target.edge_depth > 0)), res, config)
     basin, moved = basin_px(config), float(res.moved)
     # OK needs evidence beyond the distance fields: a solve from matched image features
     # converging to the same pose (a lone pair has no recent frames to compare with)
+    found = None if target.gray is None else Detections(target.gray)
     if reason is None and not recovery.confirm(
-            target, kf, res, align=solve, intrinsics=intr, config=config,
+            target, kf, res, align=solve, intrinsics=intr, config=config, found=found,
             usable=lambda out: lost_reason(target.num_edges, out, config) is None):
         reason = (f"moved {moved:.0f} px from its start, past the {basin:.0f} px basin, not "
                   "confirmed by features" if moved > basin else
                   "not confirmed by features: a solve from matched ORB / SIFT keypoints did "
                   "not converge to this pose (or none could be made)")
+    return reason
+
+
+def _usable(res, reason: str | None) -> AlignResult:
+    """The AlignResult of a usable solve ``res``: its pose (T_target_source, metres,
+    float64, orthonormalised), its information (6, 6) over [v, w] (the symmetrised inverse
+    of the symmetrised covariance), WEAK with ``reason``, else OK."""
     cov = np.asarray(res.covariance, np.float64)
     information = np.linalg.inv(0.5 * (cov + cov.T))
     return AlignResult(True, orthonormalise_np(np.asarray(res.T_c_k, np.float64)),

@@ -19,7 +19,7 @@ from pathlib import Path
 from ..config import Config
 from ..datasets.source import REALSENSE
 from ..io import json_safe
-from .batch import _as_items
+from .configs import _as_items
 
 #: keys of a sweep file's top level
 SWEEP_KEYS = ("sources", "frame_steps", "seeds", "max_frames", "chunk", "base", "grid")

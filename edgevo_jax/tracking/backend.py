@@ -58,6 +58,7 @@ class Backend:
         self.map: NullMap = KeyframeMapPart(self) if config.map else NullMap()
         self.refinements: list[Refinement] = []  # as taken
         self.corrections: list[Correction] = []  # earlier poses moved, in order
+        self.moved: list[Moved] = []  # keyframes moved after the last tick (a tie's chain)
         self.ms = 0.0  # the tracker's time on the window in this frame (ms)
         self.intrinsics_moved = False  # the window's intrinsics were taken in this frame
 
@@ -66,9 +67,10 @@ class Backend:
         """Frame ``index`` begins: the loops' solve due is taken (its keyframes move, and the
         frames tracked from them: a ``Correction``), their searches due join the graph and
         the next solve is submitted; then the window's refinements due at it are taken. The
-        keyframes that moved, in order."""
+        keyframes that moved since the last frame (a tie's chain), in order."""
         self.ms, self.intrinsics_moved = 0.0, False
-        moved = self.map.tick(index)
+        moved, self.moved = self.moved, []
+        moved += self.map.tick(index)
         return moved + [Moved(r.key, r.pose) for r in self._due(index + 1, index)]
 
     def handover(self, index: int) -> list[Refined]:
@@ -275,6 +277,7 @@ class KeyframeMapPart(NullMap):
         chain = []
         if tie is not None and tie.correction is not None and tie.guessed is not None:
             chain = self.places.anchor(tie.guessed, tie.correction)
+            self.backend.moved += [Moved(k, self.backend.poses.keyframe(k)) for k in chain]
         settled = tie is not None or (result.state == OK and kf is not None
                                       and kf.guess is None)
         moved = self.ledger.record(index, settled=settled, moved=frozenset(chain))

@@ -123,24 +123,8 @@ def plot_frame(
     scale (square root, clipped at its 99th percentile). ``dpi``: pixels per inch (default
     120; a panel is 4.6 inches wide).
     """
-    img = np.asarray(gray)
-    if img.ndim != 2:
-        raise ValueError(f"gray must be a 2-D (H, W) image, got shape {img.shape}")
+    img, uv, mag = _checked_frame(gray, frame)
     h, w = img.shape
-    if tuple(frame.dist[0].shape) != (h, w):
-        raise ValueError(f"gray is {w}x{h} but the frame's level 0 is "
-                         f"{frame.dist[0].shape[1]}x{frame.dist[0].shape[0]} (width x height)")
-    uv = np.asarray(frame.edge_uv)
-    mag = np.asarray(frame.edge_mag, np.float64)
-    if uv.ndim != 2 or uv.shape[1] != 2 or mag.shape != (uv.shape[0],):
-        raise ValueError(f"frame.edge_uv must be (N, 2) and edge_mag (N,), got {uv.shape} and "
-                         f"{mag.shape}")
-    import jax.numpy as jnp
-    import matplotlib as mpl
-    from matplotlib.colors import PowerNorm
-
-    from ..image.interp import nearest_edge_gradient
-
     levels = len(frame.dist)
     cols = max(3, levels)
     panel = 4.6
@@ -153,8 +137,42 @@ def plot_frame(
     ax = axes[0, 0]
     ax.imshow(img, cmap="gray", interpolation="antialiased")
     ax.set_title(f"(a) gray image, {w}x{h} px", fontsize=11)
+    _edge_panel(fig, axes[0, 1], uv, mag, h, w)
+    _direction_panel(fig, axes[0, 2], frame, h, w)
+    for level, field in enumerate(frame.dist):
+        _distance_panel(fig, axes[1, level], field, level)
+    for ax in axes[1, levels:]:
+        ax.set_axis_off()
+    if title:
+        fig.suptitle(title, fontsize=12)
+    return save(fig, path, dpi)
 
-    ax = axes[0, 1]
+
+def _checked_frame(gray: np.ndarray, frame: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The gray image (H, W), the frame's edge pixels (N, 2) (u, v) and magnitudes (N,)
+    float64, checked: ValueError unless gray is 2-D of the size of the frame's level 0 and
+    edge_uv, edge_mag have those shapes."""
+    img = np.asarray(gray)
+    if img.ndim != 2:
+        raise ValueError(f"gray must be a 2-D (H, W) image, got shape {img.shape}")
+    h, w = img.shape
+    if tuple(frame.dist[0].shape) != (h, w):
+        raise ValueError(f"gray is {w}x{h} but the frame's level 0 is "
+                         f"{frame.dist[0].shape[1]}x{frame.dist[0].shape[0]} (width x height)")
+    uv = np.asarray(frame.edge_uv)
+    mag = np.asarray(frame.edge_mag, np.float64)
+    if uv.ndim != 2 or uv.shape[1] != 2 or mag.shape != (uv.shape[0],):
+        raise ValueError(f"frame.edge_uv must be (N, 2) and edge_mag (N,), got {uv.shape} and "
+                         f"{mag.shape}")
+    return img, uv, mag
+
+
+def _edge_panel(fig, ax, uv: np.ndarray, mag: np.ndarray, h: int, w: int) -> None:
+    """Panel (b): the edge pixels uv (N, 2) (u, v) of an (h, w) image coloured by their
+    gradient magnitude mag (N,) (8-bit units, scale clipped at the 99th percentile), the rest
+    black; with its colour bar."""
+    import matplotlib as mpl
+
     edge_img = np.full((h, w), np.nan)
     cols_u = np.clip(np.round(uv[:, 0]).astype(int), 0, w - 1)
     rows_v = np.clip(np.round(uv[:, 1]).astype(int), 0, h - 1)
@@ -165,7 +183,16 @@ def plot_frame(
     ax.set_title(f"(b) Canny edges: {uv.shape[0]} pixels", fontsize=11)
     fig.colorbar(im, ax=ax, shrink=0.85, label="gradient magnitude (Sobel, 8-bit units)")
 
-    ax = axes[0, 2]
+
+def _direction_panel(fig, ax, frame: Frame, h: int, w: int) -> None:
+    """Panel (c): at every pixel of the (h, w) level 0, the gradient direction (degrees,
+    atan2(g_v, g_u), cyclic colours) of the nearest edge of ``frame.edge_map`` (black where
+    none is found); with its colour bar."""
+    import jax.numpy as jnp
+    import matplotlib as mpl
+
+    from ..image.interp import nearest_edge_gradient
+
     vv, uu = np.mgrid[0:h, 0:w]
     g, found = nearest_edge_gradient(frame.edge_map, jnp.asarray(
         np.stack([uu.ravel(), vv.ravel()]).astype(np.float32)))
@@ -177,22 +204,20 @@ def plot_frame(
     fig.colorbar(im, ax=ax, shrink=0.85, ticks=[-180, -90, 0, 90, 180],
                  label="atan2(g_v, g_u) (degrees)")
 
-    for level, field in enumerate(frame.dist):
-        ax = axes[1, level]
-        d = np.asarray(field, np.float64)
-        top = float(np.percentile(d, 99)) if d.size else 1.0
-        # square-root colour scale: the few pixels near edges, which the residuals read,
-        # get as much of the colour range as the wide empty regions
-        im = ax.imshow(d, cmap="magma", norm=PowerNorm(0.5, vmin=0.0, vmax=max(top, 1e-9)),
-                       interpolation="antialiased")
-        ax.set_title(f"({chr(ord('d') + level)}) distance field, level {level}: "
-                     f"{d.shape[1]}x{d.shape[0]}", fontsize=11)
-        fig.colorbar(im, ax=ax, shrink=0.85, extend="max",
-                     label=f"distance to nearest edge (level-{level} px)")
-    for ax in axes[1, levels:]:
-        ax.set_axis_off()
-    if title:
-        fig.suptitle(title, fontsize=12)
-    return save(fig, path, dpi)
 
+def _distance_panel(fig, ax, field, level: int) -> None:
+    """Panel (d), (e), ...: the distance field of ``level`` (H / 2**l, W / 2**l), distances
+    in that level's pixels, on a square-root colour scale clipped at its 99th percentile;
+    with its colour bar."""
+    from matplotlib.colors import PowerNorm
 
+    d = np.asarray(field, np.float64)
+    top = float(np.percentile(d, 99)) if d.size else 1.0
+    # square-root colour scale: the few pixels near edges, which the residuals read,
+    # get as much of the colour range as the wide empty regions
+    im = ax.imshow(d, cmap="magma", norm=PowerNorm(0.5, vmin=0.0, vmax=max(top, 1e-9)),
+                   interpolation="antialiased")
+    ax.set_title(f"({chr(ord('d') + level)}) distance field, level {level}: "
+                 f"{d.shape[1]}x{d.shape[0]}", fontsize=11)
+    fig.colorbar(im, ax=ax, shrink=0.85, extend="max",
+                 label=f"distance to nearest edge (level-{level} px)")

@@ -5,6 +5,7 @@ gauge, the pose-only warm-up, the fixed-inlier-set acceptance and the scale rest
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
@@ -14,7 +15,7 @@ import numpy as np
 from ..config import Config
 from ..derive import MappingConfig
 from ..geometry import Pose
-from ..solvers import WINDOW_DAMPING
+from ..solvers import WINDOW_DAMPING, LevenbergMarquardt
 from .prior import Prior, no_prior, with_prior
 from .problem import (
     NormalEquations,
@@ -111,6 +112,73 @@ def _damped_step(ne: NormalEquations, lam: jnp.ndarray, joint_stage: jnp.ndarray
     return jnp.where(ok, dc, 0.0), jnp.where(ok, dp, 0.0)
 
 
+def _at(problem: WindowProblem, x) -> WindowProblem:
+    """``problem`` with the LM point x = (poses (n, 4, 4) T_w_k, rho (n, A) inverse depths
+    (1/m), intrinsics (4,) fx, fy, cx, cy in pixels) put in; every other field as it was."""
+    return problem._replace(poses=x[0], rho=x[1], intrinsics=x[2])
+
+
+def _log_rho_sum(problem: WindowProblem) -> jnp.ndarray:
+    """The sum () of the active edges' log inverse depths (log 1/m): the scale that
+    ``_restore_scale`` gives back after every step."""
+    return jnp.sum(jnp.where(problem.valid,
+                             jnp.log(jnp.where(problem.valid, problem.rho, 1.0)), 0.0))
+
+
+def _try_body(problem: WindowProblem, cfg: MappingConfig, prior: Prior,
+              lm: LevenbergMarquardt, log_rho_sum: jnp.ndarray) -> Callable:
+    """The while-loop body of ``refine``: carry (i () int, LMState over the point of ``_at``
+    with a ``_Judged`` system, cost0 ()) -> the carry after try i. Try 0 only evaluates the
+    start (cost0 = its energy), tries 1 .. warmup_iterations move the poses alone, the later
+    ones are joint (lam reset to ``lambda_init`` for the first); with ``fix_scale`` every
+    candidate is moved back to the scale ``log_rho_sum`` (()) of the start."""
+    warm = cfg.warmup_iterations
+    pose_only, joint = _fixed_variables(problem.poses.shape[0], cfg)
+
+    def body(carry):
+        # try i = 0 evaluates the start; tries 1..warm move the poses alone
+        i, state, cost0 = carry
+        state = state._replace(lam=jnp.where(i == warm + 1, cfg.lambda_init, state.lam))
+
+        def solve(x, judged: _Judged, lam):
+            dc, dp = _damped_step(judged.ne, lam, i > warm, pose_only, joint, cfg)
+            return jnp.where(i == 0, 0.0, dc), jnp.where(i == 0, 0.0, dp)
+
+        def apply(x, delta):
+            p_new = _apply(_at(problem, x), delta[0], delta[1], cfg.min_rho)
+            if cfg.fix_scale:
+                p_new = _restore_scale(p_new, log_rho_sum, cfg.gauge_index)
+            return (p_new.poses, p_new.rho, p_new.intrinsics)
+
+        state, new = lm.step(
+            state, solve=solve, apply=apply,
+            evaluate=lambda x, judged: _judged_system(_at(problem, x), judged.ne.mask, cfg,
+                                                      prior),
+            accept=lambda old, new: new.fixed_set_cost < old.ne.cost,
+            norm=lambda d: jnp.sqrt(d[0] @ d[0] + d[1] @ d[1]))
+        # a converged warm-up must not end the loop before the joint tries
+        state = state._replace(step=jnp.where((i == 0) | (i == warm), jnp.inf, state.step))
+        return i + 1, state, jnp.where(i == 0, new.ne.cost, cost0)
+
+    return body
+
+
+def _initial_carry(problem: WindowProblem, cfg: MappingConfig, prior: Prior,
+                   lm: LevenbergMarquardt) -> tuple:
+    """The carry before try 0: (i = 0, the LMState at ``problem``'s point (``_at``) with
+    zero normal equations of the window's shapes and an infinite cost (so that try 0, a zero
+    step, is kept and evaluates the start; lam and step in ``problem.rho``'s dtype),
+    cost0 = inf)."""
+    dtype = problem.rho.dtype
+    n_, _, A_ = problem.uv.shape
+    shapes = jax.eval_shape(lambda p, m: _judged_system(p, m, cfg, prior), problem,
+                            jnp.zeros((n_, n_ - 1, A_), bool)).ne
+    ne0 = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+    ne0 = ne0._replace(cost=jnp.asarray(jnp.inf, shapes.cost.dtype))
+    x0 = (problem.poses, problem.rho, problem.intrinsics)
+    return (jnp.asarray(0), lm.init(x0, _Judged(ne0, ne0.cost), dtype), ne0.cost)
+
+
 def refine(
     problem: WindowProblem, config: MappingConfig | Config, prior: Prior | None = None,
     iterations: int | None = None,
@@ -141,58 +209,16 @@ def refine(
     prior = no_prior(problem) if prior is None else prior
     iters = cfg.iterations if iterations is None else iterations
     warm = cfg.warmup_iterations
-    pose_only, joint = _fixed_variables(problem.poses.shape[0], cfg)
-
-    def system(p: WindowProblem, prev_mask: jnp.ndarray) -> _Judged:
-        return _judged_system(p, prev_mask, cfg, prior)
-
-    def at(x) -> WindowProblem:
-        return problem._replace(poses=x[0], rho=x[1], intrinsics=x[2])
-
     lm = dataclasses.replace(WINDOW_DAMPING, lam_init=cfg.lambda_init)
 
     def cond(carry):
         i, state, _ = carry
         return (i <= warm + iters) & (lm.continues(state, cfg.step_tol) | (i <= warm))
 
-    def body(carry):
-        # try i = 0 evaluates the start; tries 1..warm move the poses alone
-        i, state, cost0 = carry
-        state = state._replace(lam=jnp.where(i == warm + 1, cfg.lambda_init, state.lam))
-
-        def solve(x, judged: _Judged, lam):
-            dc, dp = _damped_step(judged.ne, lam, i > warm, pose_only, joint, cfg)
-            return jnp.where(i == 0, 0.0, dc), jnp.where(i == 0, 0.0, dp)
-
-        def apply(x, delta):
-            p_new = _apply(at(x), delta[0], delta[1], cfg.min_rho)
-            if cfg.fix_scale:
-                p_new = _restore_scale(p_new, log_rho_sum, cfg.gauge_index)
-            return (p_new.poses, p_new.rho, p_new.intrinsics)
-
-        state, new = lm.step(
-            state, solve=solve, apply=apply,
-            evaluate=lambda x, judged: system(at(x), judged.ne.mask),
-            accept=lambda old, new: new.fixed_set_cost < old.ne.cost,
-            norm=lambda d: jnp.sqrt(d[0] @ d[0] + d[1] @ d[1]))
-        # a converged warm-up must not end the loop before the joint tries
-        state = state._replace(step=jnp.where((i == 0) | (i == warm), jnp.inf, state.step))
-        return i + 1, state, jnp.where(i == 0, new.ne.cost, cost0)
-
-    dtype = problem.rho.dtype
-    log_rho_sum = jnp.sum(jnp.where(problem.valid,
-                                    jnp.log(jnp.where(problem.valid, problem.rho, 1.0)), 0.0))
-    n_, _, A_ = problem.uv.shape
-    shapes = jax.eval_shape(system, problem, jnp.zeros((n_, n_ - 1, A_), bool)).ne
-    ne0 = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
-    ne0 = ne0._replace(cost=jnp.asarray(jnp.inf, shapes.cost.dtype))
-    x0 = (problem.poses, problem.rho, problem.intrinsics)
-    init = (jnp.asarray(0), lm.init(x0, _Judged(ne0, ne0.cost), dtype), ne0.cost)
+    body = _try_body(problem, cfg, prior, lm, _log_rho_sum(problem))
+    init = _initial_carry(problem, cfg, prior, lm)
     i, state, cost0 = jax.lax.while_loop(cond, body, init)
-    x, ne = state.x, state.system.ne
-    out = problem._replace(poses=x[0], rho=x[1], intrinsics=x[2])
+    ne = state.system.ne
     stats = {"cost_before": cost0, "cost_after": ne.cost, "inliers": ne.count,
              "iterations": i - 1}
-    return out, stats
-
-
+    return _at(problem, state.x), stats

@@ -16,6 +16,7 @@ from edgevo_jax import Config
 from edgevo_jax.cli import BUNDLED_CLIP
 from edgevo_jax.datasets import load_sequence
 from edgevo_jax.runs import batch
+from edgevo_jax.runs import configs as config_files
 from edgevo_jax.runs.run import run_sequence, summarise
 
 # numbers of the solve (vmapped), host-side settings and the edge budget (padded slots); the
@@ -110,23 +111,23 @@ def test_load_configs_grid_and_list(tmp_path):
     grid.write_text(json.dumps({"base": {"eta": 0.5},
                                 "grid": {"huber_delta": [[1, 1, 1], [2, 2, 2]],
                                          "num_edges": [256, 512]}}))
-    configs = batch.load_configs(grid)
+    configs = config_files.load_configs(grid)
     assert [(c.huber_delta[0], c.num_edges) for c in configs] == [
         (1.0, 256), (1.0, 512), (2.0, 256), (2.0, 512)]
     assert all(c.eta == 0.5 for c in configs)
     listed = tmp_path / "list.json"
     listed.write_text(json.dumps([{}, {"mapping": False, "seed": 3}]))
-    a, b = batch.load_configs(listed)
+    a, b = config_files.load_configs(listed)
     assert a == Config() and not b.mapping and b.seed == 3
-    assert batch.changed_fields(b) == {"mapping": False, "seed": 3}
-    assert batch.changed_fields(b, base=a.replace(seed=3)) == {"mapping": False}
-    assert batch.configs_from_spec([{"eta": 0.7}])[0].eta == 0.7
+    assert config_files.changed_fields(b) == {"mapping": False, "seed": 3}
+    assert config_files.changed_fields(b, base=a.replace(seed=3)) == {"mapping": False}
+    assert config_files.configs_from_spec([{"eta": 0.7}])[0].eta == 0.7
     for bad, match in [("[1, 2]", "expected a non-empty list"), ("{", "not valid JSON"),
                        ('{"grid": {"eta": []}}', "non-empty lists"),
                        ('[{"nope": 1}]', "unknown config key")]:
         listed.write_text(bad)
         with pytest.raises(ValueError, match=match):
-            batch.load_configs(listed)
+            config_files.load_configs(listed)
 
 
 def test_cli_batch_writes_results_and_trajectories(tmp_path):
