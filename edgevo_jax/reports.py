@@ -4,6 +4,7 @@ with NaN as null, text), markdown tables of formatted numbers, and integer lists
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -11,11 +12,23 @@ import re
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
+
 from .io import json_safe
 
-__all__ = ["fmt", "int_list", "markdown_table", "write_json", "write_text"]
+__all__ = ["digest", "fmt", "int_list", "markdown_table", "write_json", "write_text"]
 
 _INT_ITEM = re.compile(r"^(-?\d+)\s*(?:-\s*(-?\d+))?$")
+
+
+def digest(run, poses: np.ndarray | None = None) -> str:
+    """SHA-256 (hex) of a run's float64 poses (``poses``: others of the same frames, e.g. its
+    online ones) and each frame's state, reason and keyframe reason: equal digests are equal
+    trajectories and verdicts, to the bit."""
+    h = hashlib.sha256(np.ascontiguousarray(run.poses if poses is None else poses,
+                                            np.float64).tobytes())
+    h.update(repr([(r.state, r.reason, r.keyframe) for r in run.results]).encode())
+    return h.hexdigest()
 
 
 def fmt(value: object, spec: str, *, missing: str = "n/a") -> str:

@@ -11,11 +11,13 @@ Per seed and run: ATE over every frame, the end-to-start error (the last frame i
 first one again: the estimated motion between them, in cm and degrees), the loops closed
 and rejected, the loops accepted wrong (a kept loop edge more than ``WRONG_M`` or
 ``WRONG_DEG`` from the truth's relative pose of its two keyframes), the pose graph's solves
-(keyframes, ms) and the run's mean time per frame. ``--false-loop N``: a third run in
-which the N-th loop found is handed to the pose graph against a wrong keyframe (the
-keyframe of the map farthest from the right one, with the right one's measurement), past
-the alignment's verification: whether the graph rejects it, and its ATE against the run
-without it. Prints a line per seed and run and writes everything to JSON.
+(keyframes, ms), the run's mean time per frame and the digests of its written and online
+trajectories (``reports.digest``: equal digests, equal trajectories to the bit).
+``--false-loop N``: a third run in which the N-th loop found is handed to the pose graph
+against a wrong keyframe (the keyframe of the map farthest from the right one, with the
+right one's measurement), past the alignment's verification: whether the graph rejects it,
+and its ATE against the run without it. Prints a line per seed and run and writes it all to
+JSON.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from edgevo_jax.datasets.pingpong import pingpong
 from edgevo_jax.datasets.tum import load_sequence
 from edgevo_jax.geometry import inverse_np, rotation_angle_np
 from edgevo_jax.provenance import machine_info
-from edgevo_jax.reports import int_list, write_json
+from edgevo_jax.reports import digest, int_list, write_json
 from edgevo_jax.runs.measure import accuracy, groundtruth_at
 from edgevo_jax.runs.run import run_sequence
 from edgevo_jax.tracking import places as relocalise
@@ -109,6 +111,7 @@ def measured(run, seq, gt: np.ndarray, false_loop: bool = False) -> dict:
         "keyframes": run.num_keyframes,
         "ms_per_frame_mean": float(np.mean(run.frame_ms[1:])),
         "ms_per_frame_median": float(np.median(run.frame_ms[1:])),
+        "digest": digest(run), "online_digest": digest(run, run.online_poses),
     }
 
 

@@ -35,7 +35,7 @@ from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets.cover import covered_copy
 from edgevo_jax.datasets.tum import EmptyDepthWarning, load_sequence
 from edgevo_jax.provenance import machine_info
-from edgevo_jax.reports import int_list, write_json
+from edgevo_jax.reports import digest, int_list, write_json
 from edgevo_jax.runs.measure import accuracy, groundtruth_at, pose_errors
 from edgevo_jax.runs.run import run_sequence
 
@@ -96,6 +96,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             before = run_sequence(plain, config, progress=False)
             after = run_sequence(covered, config, progress=False)
             row = {"seed": seed, **covered_run(covered, after, args.cover, gt),
+                   "digest": digest(after), "uncovered_digest": digest(before),
                    "uncovered_ate_m": accuracy(plain.groundtruth, before.timestamps,
                                                before.poses)["ate_rmse_m"],
                    # the map's memory over the uncovered clip: keyframes, bytes, seconds

@@ -17,23 +17,12 @@ step in one ``evaluate`` batch.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from edgevo_jax import Config, enable_batch_exact, evaluate, load_sequence, run
-from edgevo_jax.reports import int_list
-
-
-def digest(run) -> str:
-    """SHA-256 (hex) of a run's float64 poses and each frame's state, reason and keyframe
-    reason: equal digests are equal trajectories and verdicts, to the bit."""
-    h = hashlib.sha256(np.ascontiguousarray(run.poses, np.float64).tobytes())
-    h.update(repr([(r.state, r.reason, r.keyframe) for r in run.results]).encode())
-    return h.hexdigest()
+from edgevo_jax.reports import digest, int_list
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -5,11 +5,12 @@ from __future__ import annotations
 
 import json
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from edgevo_jax.reports import fmt, int_list, markdown_table, write_json, write_text
+from edgevo_jax.reports import digest, fmt, int_list, markdown_table, write_json, write_text
 
 
 def test_fmt():
@@ -49,3 +50,15 @@ def test_int_list():
     for bad in ("", ",", "a", "3-1", "1-x", "1.5", "1-2-3"):
         with pytest.raises(ValueError):
             int_list(bad)
+
+
+def test_digest_tells_a_pose_or_a_verdict_apart_to_the_bit():
+    frames = [SimpleNamespace(state="OK", reason=None, keyframe=None)] * 2
+    poses = np.stack([np.eye(4)] * 2)
+    run = SimpleNamespace(poses=poses, results=frames)
+    assert digest(run) == digest(SimpleNamespace(poses=poses.copy(), results=list(frames)))
+    nudged = poses.copy()
+    nudged[1, 0, 3] = np.nextafter(0.0, 1.0)  # one float64 step
+    assert digest(run, nudged) != digest(run)
+    weak = [frames[0], SimpleNamespace(state="WEAK", reason="why", keyframe=None)]
+    assert digest(SimpleNamespace(poses=poses, results=weak)) != digest(run)
