@@ -192,14 +192,22 @@ class Config:
     frame at the frame's pose (predicted overlap): the bar for an older keyframe to take
     over on a revisit, and for a keyframe to be tried at a guessed pose. Why:
     ``docs/decisions.md``, "The keyframe map"."""
+    map_chain_query_s: float = 0.25
+    """[s] A chain of keyframes made at a guess asks the map where it is at most this often
+    (its frames are tracked, only their frame is not the map's): 4 queries a second find
+    the place within 1 s of its coming into view, at a fraction of a query per frame. Frames
+    lost or doubted by their own solve ask at every frame. Why: ``docs/decisions.md``,
+    "Loops found by what the camera sees"."""
     loops: bool = True
-    """[-] Close loops (with ``map``): a new keyframe that an older keyframe of the map sees,
-    one the pose graph does not tie to it within twice ``window_size`` edges, is aligned to
-    it from the chain's pose beside tracking, verified as a revisit is and confirmed by a
-    keyframe beside the old one; the relation is a loop edge, and a pose graph over the
-    map's keyframes (``map/pose_graph.py``) spreads the drift beside tracking: the
-    keyframes, the window and the frames tracked from them move with it. False: the map's
-    odometry, bit for bit. Why: ``docs/decisions.md``, "Loops closed"."""
+    """[-] Close loops (with ``map``): a new keyframe is looked for, beside tracking, among
+    the older keyframes of the map that look like it (place recognition over the whole
+    map, less the keyframes the pose graph ties to it within twice ``window_size`` edges),
+    each placed by its landmarks matched to the frame (PnP, with no pose of the chain's),
+    refined by the edge alignment, verified and confirmed by a keyframe beside the old
+    one; the relation is a loop edge, and a pose graph over the map's keyframes
+    (``map/pose_graph.py``) spreads the drift beside tracking: the keyframes, the window and
+    the frames tracked from them move with it. False: the map's odometry, bit for bit.
+    Why: ``docs/decisions.md``, "Loops closed" and "Loops found by what the camera sees"."""
     loop_lag: int = 45
     """[frames] Frames after a keyframe at which the tracker takes its loop search, and
     after a pose graph is submitted at which it takes the correction (waiting for the
@@ -243,6 +251,8 @@ class Config:
             raise ValueError("Config.activation_depth_step must be >= 0 (0: no depth test)")
         if not 0.0 < self.map_overlap <= 1.0:
             raise ValueError("Config.map_overlap must be in (0, 1]")
+        if not self.map_chain_query_s >= 0.0:
+            raise ValueError("Config.map_chain_query_s must be non-negative")
         for name in ("active_per_keyframe", "activation_cell", "mapping_iterations",
                      "activation_depth_reach", "map_max_keyframes", "map_candidates",
                      "loop_lag"):

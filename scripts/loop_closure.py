@@ -9,8 +9,8 @@ Usage::
 
 Per seed and run: ATE over every frame, the end-to-start error (the last frame is the
 first one again: the estimated motion between them, in cm and degrees), the loops closed
-and rejected, the loops accepted wrong (a kept loop edge more than ``WRONG_M`` or
-``WRONG_DEG`` from the truth's relative pose of its two keyframes), the pose graph's solves
+and rejected, the loops accepted wrong (``measure.wrong_loops``: a kept loop edge more than
+5 cm or 3 degrees from the truth's relative pose of its two keyframes), the pose graph's solves
 (keyframes, ms), the run's mean time per frame and the digests of its written and online
 trajectories (``reports.digest``: equal digests, equal trajectories to the bit).
 ``--false-loop N``: a third run in which the N-th loop found is handed to the pose graph
@@ -36,12 +36,9 @@ from edgevo_jax.datasets.tum import load_sequence
 from edgevo_jax.geometry import inverse_np, rotation_angle_np
 from edgevo_jax.provenance import machine_info
 from edgevo_jax.reports import digest, int_list, write_json
-from edgevo_jax.runs.measure import accuracy, groundtruth_at
+from edgevo_jax.runs.measure import accuracy, groundtruth_at, wrong_loops
 from edgevo_jax.runs.run import run_sequence
 from edgevo_jax.tracking import places as relocalise
-
-#: a kept loop edge this far from the truth's relative pose is accepted wrong (m, degrees)
-WRONG_M, WRONG_DEG = 0.05, 3.0
 
 
 def end_to_start(poses: np.ndarray, gt: np.ndarray) -> tuple[float, float]:
@@ -49,19 +46,6 @@ def end_to_start(poses: np.ndarray, gt: np.ndarray) -> tuple[float, float]:
     truth's (cm, degrees)."""
     D = inverse_np(inverse_np(gt[0]) @ gt[-1]) @ inverse_np(poses[0]) @ poses[-1]
     return 100 * float(np.linalg.norm(D[:3, 3])), float(np.degrees(rotation_angle_np(D)))
-
-
-def wrong_loops(run, seq) -> int:
-    """Kept loop edges more than ``WRONG_M`` / ``WRONG_DEG`` from the truth (module doc)."""
-    if not run.loops:
-        return 0
-    wrong = 0
-    for e in run.loops["closed"]:
-        gt = groundtruth_at(seq, np.array([e["older_t"], e["newer_t"]]))
-        D = inverse_np(inverse_np(gt[0]) @ gt[1]) @ np.asarray(e["measured"])
-        wrong += bool(np.linalg.norm(D[:3, 3]) > WRONG_M
-                      or np.degrees(rotation_angle_np(D)) > WRONG_DEG)
-    return wrong
 
 
 def forcing_false_loop(n: int):
@@ -104,7 +88,7 @@ def measured(run, seq, gt: np.ndarray, false_loop: bool = False) -> dict:
                                  else run.poses)["ate_rmse_m"],
         "end_to_start_cm": cm, "end_to_start_deg": deg,
         "loops_closed": len(loops["closed"]), "loops_rejected": len(loops["rejected"]),
-        "loops_wrong": wrong_loops(run, seq),
+        "loops_wrong": wrong_loops(run.loops, seq),
         "false_loop_rejected": None if not false_loop else any(
             e["note"].startswith("false loop") for e in loops["rejected"]),
         "solves": [(s["keyframes"], round(s["ms"], 1)) for s in loops["solves"]],

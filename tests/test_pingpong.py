@@ -1,12 +1,21 @@
-"""Long sequences played back and forth from a clip: indices, timestamps, ground truth."""
+"""Long sequences played back and forth from a clip (indices, timestamps, ground truth), and
+once there and back on frames the passes do not share."""
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pytest
 
 from edgevo_jax.cli import BUNDLED_CLIP
-from edgevo_jax.datasets import groundtruth_pose_at, load_sequence, pingpong, pingpong_indices
+from edgevo_jax.datasets import (
+    groundtruth_pose_at,
+    load_sequence,
+    pingpong,
+    pingpong_indices,
+    there_and_back,
+)
 
 
 def test_indices_go_back_and_forth():
@@ -42,3 +51,23 @@ def test_pingpong_keeps_each_depth_images_time_to_its_colour_image(shared_clip):
     assert played.depth_timestamps.shape == (300,)
     np.testing.assert_allclose(played.depth_timestamps - played.timestamps, lag[idx],
                                atol=1e-6)
+
+
+def test_there_and_back_shares_no_image_and_reads_the_way_back_from_its_copy(tmp_path):
+    seq = load_sequence(BUNDLED_CLIP)  # 9 associated frames
+    loop = there_and_back(seq)
+    n = len(seq)
+    forward, backward = list(range(0, n, 2)), list(range(n - 2, 0, -2))
+    assert [seq.rgb_files.index(f) for f in loop.rgb_files] == forward + backward
+    assert not set(loop.rgb_files[:len(forward)]) & set(loop.rgb_files[len(forward):])
+    assert np.all(np.diff(loop.timestamps) > 0)
+    np.testing.assert_array_equal(loop.groundtruth[0], loop.timestamps)
+    other = dataclasses.replace(seq, depth_files=tuple(tmp_path / f"d{i}.png"
+                                                        for i in range(n)))
+    mixed = there_and_back(seq, other)
+    assert mixed.depth_files[:len(forward)] == loop.depth_files[:len(forward)]
+    assert mixed.depth_files[len(forward):] == tuple(tmp_path / f"d{i}.png" for i in backward)
+    with pytest.raises(ValueError, match="of the same length"):
+        there_and_back(seq, dataclasses.replace(seq, rgb_files=seq.rgb_files[:4],
+                                                depth_files=seq.depth_files[:4],
+                                                timestamps=seq.timestamps[:4]))

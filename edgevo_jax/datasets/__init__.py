@@ -7,7 +7,7 @@ from pathlib import Path
 from .calibration import camera_from_name, read_calibration
 from .cover import covered_copy
 from .groundtruth import groundtruth_pose_at
-from .pingpong import pingpong, pingpong_indices
+from .pingpong import pingpong, pingpong_indices, there_and_back
 from .tum import TumSequence, load_sequence, read_file_list, subsequence
 
 #: the clip shipped in the package: the first 10 frames of TUM fr1/xyz (CC BY 4.0), the
@@ -27,4 +27,5 @@ __all__ = [
     "read_calibration",
     "read_file_list",
     "subsequence",
+    "there_and_back",
 ]

@@ -3,11 +3,13 @@
 Edges. A keyframe made from a frame tracked against another keyframe (its ``parent``) is
 tied to it by their relative pose as the window refined it (``measure``, when its refinement
 is taken), with the information of the solve that tracked the frame. A loop edge ties a new
-keyframe to an older keyframe of the map that sees it and that the graph does not tie to it
-within twice ``window_size`` edges (``tied``): the new keyframe's frame is aligned to it
-from the chain's pose, verified as a revisit is and confirmed by a keyframe beside the old
-one (``tracking.places.Places.loop``), on the worker; the search is taken ``Config.loop_lag``
-frames later (``found``). One search is in flight at a time (``searches``).
+keyframe to an older keyframe of the map that the graph does not tie to it within twice
+``window_size`` edges (``tied``), found by what the camera sees: recognition's candidates,
+each placed by its landmarks matched to the new keyframe's frame (PnP, no pose of the
+chain's), refined by the edge alignment, verified and confirmed by a keyframe beside the
+old one (``tracking.places.Places.loop``), on the worker; the search is taken
+``Config.loop_lag`` frames later (``found``). One search is in flight at a time, and one per new keyframe
+while a revisit goes on (``searches``).
 
 Information. The solve's covariance (J^T W J)^-1 counts the pixels' noise only: it gives a
 keyframe's pose to a tenth of a millimetre where the tracker's bias moves it by millimetres.
@@ -19,11 +21,14 @@ Correction. A loop edge that disagrees with the map (chi-square over the kernel'
 squared) submits the graph to a worker at the lowest priority (``submit``): the map's
 anchored keyframes whose pose is final, the oldest of each connected part held
 (``pose_graph.optimise``: a Cauchy kernel on loop edges). A loop edge left with a
-robust weight under ``MIN_WEIGHT`` is rejected: dropped, and the graph solved again without
-it. The solution is taken ``loop_lag`` frames after it was submitted (the tracker waits for
-it if need be), so when it lands never depends on the machine; loops found meanwhile wait
-for the next solve. Each keyframe of the graph takes its correction, each keyframe not in it
-its parent's (``corrections``); the driver moves the window and the frames.
+robust weight under ``MIN_WEIGHT`` is rejected (dropped, and the graph solved again without
+it) unless the graph solved as plain squares explains it as drift, every edge within
+``SPREAD_CHI2`` (a loop after real drift, which the kernel hears faintly from the drifted
+chain: ``_spread``). The solution is taken ``loop_lag`` frames after it was submitted (the
+tracker waits for it if need be), so when it lands never depends on the machine; loops found
+meanwhile wait for the next solve. Each keyframe of the graph takes its correction, each
+keyframe not in it its parent's (``corrections``); the driver moves the window and the
+frames.
 """
 
 from __future__ import annotations
@@ -45,6 +50,10 @@ FLOOR_M, FLOOR_DEG = 0.002, 0.2
 #: a loop edge whose Cauchy weight at the solution is under this is rejected: its whitened
 #: error is over three times the kernel's scale, ~12 standard deviations
 MIN_WEIGHT = 0.1
+#: a loop the kernel left faint is kept when the graph solved as plain squares leaves every
+#: edge's chi-square under this: chi-square's 99.9 % quantile with 6 degrees of freedom, so
+#: each keyframe moved within its own uncertainty (drift spread, not a chain bent)
+SPREAD_CHI2 = 22.46
 
 
 def information(covariance: np.ndarray) -> np.ndarray:
@@ -103,6 +112,7 @@ class Loops:
         self.solved: list[Closed] = []  # every solve taken, in order
         self._warmed: set[int] = set()  # node slots whose program is compiled (or asked)
         self._count = 0  # keyframes told
+        self._revisiting = False  # the last search taken found a loop
 
     # -- what the tracker tells it --------------------------------------------------------
     def keyframe(self, key: int, parent: int | None, covariance: np.ndarray | None) -> None:
@@ -152,9 +162,11 @@ class Loops:
 
     def searches(self) -> bool:
         """Whether a new keyframe looks for a loop: when no search is in flight (one at a
-        time, as the worker is one thread: a place needs one loop edge, not one per
-        keyframe, and each search costs a few alignments of the worker's time)."""
-        return not self._searches
+        time, as the worker is one thread and each search costs a few alignments of its
+        time), and every new keyframe while the last search taken found one (a place seen
+        again: each keyframe of the revisit tied to it pins the way back to the old way, not
+        only its first)."""
+        return not self._searches or self._revisiting
 
     def search(self, key: int, verify: Callable[[], Any], frame_index: int) -> None:
         """Run the loop search of keyframe ``key`` (``tracking.places.Places.loop``: a
@@ -162,11 +174,12 @@ class Loops:
         loop_lag`` (``found``)."""
         self._searches.submit(frame_index, key, verify)
 
-    def found(self, frame_index: int) -> list[Edge]:
-        """The loops found by the searches due at ``frame_index`` (waited for), in the order
-        asked, as edges of the graph (``add``)."""
+    def found(self, frame_index: int | None) -> list[Edge]:
+        """The loops found by the searches due at ``frame_index`` (None: all; waited for), in
+        the order asked, as edges of the graph (``add``)."""
         out = []
         for key, placed in self._searches.due(frame_index):
+            self._revisiting = placed is not None
             if placed is not None:
                 out.append(self.add(placed.keyframe.id, key, placed.result.T_c_k,
                                     placed.result.covariance, placed.note))
@@ -306,23 +319,60 @@ def _compile(slots: int) -> None:
                                          edge_slots=2 * slots)).poses.block_until_ready()
 
 
+def _faint(edges: list[Edge], solution) -> list[int]:
+    """The loop edges (their positions in ``edges``) the solution's Cauchy kernel left under
+    ``MIN_WEIGHT``."""
+    weight = np.asarray(solution.weight)[:len(edges)]
+    return [n for n, (e, w) in enumerate(zip(edges, weight, strict=True))
+            if e.loop and w < MIN_WEIGHT]
+
+
+def _spread(poses: np.ndarray, edges: list[Edge], index: dict[int, int], fixed: list[int],
+            slots: int):
+    """A loop after real drift: from the drifted chain, the kernel hears a loop that is
+    metres or tens of degrees off so faintly that it leaves it open. Solved as plain squares
+    the loop spreads its error over the chain; where every edge then stays within
+    ``SPREAD_CHI2`` (each keyframe moved within its uncertainty: drift), the robust solve
+    from there is the solution; else (a wrong loop bends the chain past what drift
+    explains) None."""
+    plain = _optimised(poses, edges, index, fixed, slots, robust=False)
+    chi2 = np.asarray(plain.chi2)[:len(edges)]
+    start = np.asarray(plain.poses, np.float64)[:len(index)]
+    if not (np.isfinite(start).all() and np.isfinite(chi2).all()) \
+            or chi2.max() > SPREAD_CHI2:
+        return None
+    return _optimised(start, edges, index, fixed, slots, robust=True)
+
+
+def _optimised(poses: np.ndarray, edges: list[Edge], index: dict[int, int], fixed: list[int],
+               slots: int, *, robust: bool):
+    """``pose_graph.optimise`` of the graph from ``poses`` (n, 4, 4) in ``slots`` node slots;
+    ``robust``: loop edges under the Cauchy kernel (else every edge plain squares)."""
+    graph = pose_graph.graph(
+        poses, [(index[e.i], index[e.j], e.measured, e.information, e.loop and robust)
+                for e in edges], fixed=fixed, nodes=slots, edge_slots=2 * slots)
+    return pose_graph.optimise(graph)
+
+
 def _solve(nodes: list[int], poses: np.ndarray, edges: list[Edge], fixed: list[int],
            slots: int) -> Closed:
-    """Optimise the graph in ``slots`` node slots; reject loop edges left under
-    ``MIN_WEIGHT`` and solve again without them (module doc)."""
+    """Optimise the graph in ``slots`` node slots; a loop edge left under ``MIN_WEIGHT`` is
+    rejected (the worst first) and the graph solved again without it, unless its error is
+    drift the graph can spread (``_spread``) (module doc)."""
     t0 = time.perf_counter()
     index = {k: n for n, k in enumerate(nodes)}
     rejected: list[Edge] = []
     while True:
-        graph = pose_graph.graph(
-            poses, [(index[e.i], index[e.j], e.measured, e.information, e.loop)
-                    for e in edges], fixed=fixed, nodes=slots, edge_slots=2 * slots)
-        solution = pose_graph.optimise(graph)
-        weight = np.asarray(solution.weight)[:len(edges)]
-        bad = [n for n, (e, w) in enumerate(zip(edges, weight, strict=True))
-               if e.loop and w < MIN_WEIGHT]
+        solution = _optimised(poses, edges, index, fixed, slots, robust=True)
+        bad = _faint(edges, solution)
+        if bad:
+            spread = _spread(poses, edges, index, fixed, slots)
+            if spread is not None:
+                solution = spread
+                bad = _faint(edges, solution)
         if not bad:
             break
+        weight = np.asarray(solution.weight)[:len(edges)]
         worst = min(bad, key=lambda n: weight[n])  # one at a time, worst first
         rejected.append(edges[worst])
         edges = edges[:worst] + edges[worst + 1:]

@@ -284,7 +284,14 @@ class KeyframeMap:
         if not rows.size:
             return []
         share = self._overlaps(inverse_np(T), rows)
-        order = [i for i in np.argsort(-share, kind="stable")[:k] if share[i] >= min_overlap]
+        # of those that see enough of it, the nearest views first (a far keyframe sees all
+        # of a camera's view as well, across a baseline its features do not match over)
+        poses = self._poses_of(rows)
+        angle = np.arccos(np.clip(poses[:, :3, 2] @ T[:3, 2], -1.0, 1.0))
+        dist = np.linalg.norm(poses[:, :3, 3] - T[:3, 3], axis=1) / np.maximum(
+            self._depths[rows], 1e-3) + angle
+        keep = np.flatnonzero(share >= min_overlap)
+        order = keep[np.argsort(dist[keep], kind="stable")][:k]
         return [Candidate(self._row_ids[rows[i]], float(share[i])) for i in order]
 
     # -- internals -------------------------------------------------------------------------

@@ -190,3 +190,17 @@ def pose_errors(poses: np.ndarray, gt_poses: np.ndarray, fit: Sequence[int]
     trans = np.where(bad, np.nan, np.linalg.norm(E[:, :3, 3], axis=-1))
     rot = np.degrees(np.asarray(rotation_angle_np(E), np.float64).reshape(-1))
     return trans, np.where(bad, np.nan, rot)
+
+
+def wrong_loops(loops: dict | None, seq: Any, *, metres: float = DIVERGED_TRANS_M,
+                degrees: float = DIVERGED_ROT_DEG) -> int:
+    """How many kept loop edges (``loops["closed"]``, a run's ``RunResult.loops``) are more
+    than ``metres`` or ``degrees`` from the truth's relative pose of their two keyframes
+    (``seq``'s ground truth at their timestamps)."""
+    wrong = 0
+    for e in (loops or {}).get("closed", []):
+        gt = groundtruth_at(seq, np.array([e["older_t"], e["newer_t"]]))
+        D = inverse_np(inverse_np(gt[0]) @ gt[1]) @ np.asarray(e["measured"])
+        wrong += bool(np.linalg.norm(D[:3, 3]) > metres
+                      or np.degrees(rotation_angle_np(D)) > degrees)
+    return wrong

@@ -168,6 +168,7 @@ def run_sequence(
     bar = _Bar(seq.name, n, odo, progress)
     try:
         _track_all(seq, odo, n, run, writer, started, on_frame, bar.advance)
+        odo.finish()  # a loop found at the end still corrects the trajectory written
     except BaseException as exc:
         run.stopped_at = len(run.results)
         kept = ""

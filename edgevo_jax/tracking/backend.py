@@ -115,6 +115,14 @@ class Backend:
                                      result.pose, lost=result.state == LOST)
         self.map.concluded(d, made, frame, before, index)
 
+    def finish(self, index: int) -> list[Moved]:
+        """The run ends after frame ``index``: what is pending is finished now, not dropped:
+        the window's refinements are taken, the loops' searches join the graph and a last
+        pose-graph solve moves the keyframes (and the frames tracked from them: a
+        ``Correction``). The keyframes that moved, in order."""
+        moved = [Moved(r.key, r.pose) for r in self._due(None, index)]
+        return moved + self.map.finish(index)
+
     def restart_window(self) -> None:
         """Stop the window (its refinements on their way dropped); the next keyframe starts
         a new one."""
@@ -185,6 +193,10 @@ class NullMap:
         """Frame ``index`` begins: the keyframes the loops moved (none)."""
         return []
 
+    def finish(self, index: int) -> list[Moved]:
+        """The run ends after frame ``index``: the keyframes the loops moved (none)."""
+        return []
+
     def measure(self, key: int) -> None:
         """Keyframe ``key``'s pose is final (refined)."""
 
@@ -252,6 +264,18 @@ class KeyframeMapPart(NullMap):
         moved = [] if closed is None else self._close(closed)
         self.loops.found(index)
         self.loops.submit(self.places.map, index)
+        return moved
+
+    def finish(self, index: int) -> list[Moved]:
+        """The run ends after frame ``index``: the solve in flight is taken, the searches in
+        flight join the graph, and a solve they call for is made and taken now."""
+        if self.loops is None:
+            return []
+        closed = self.loops.due(None)
+        moved = [] if closed is None else self._close(closed)
+        self.loops.found(None)
+        if self.loops.submit(self.places.map, index):
+            moved += self._close(self.loops.due(None))
         return moved
 
     def measure(self, key: int) -> None:

@@ -151,6 +151,8 @@ class _Step:
     confirmed: bool = False
     weak: str | None = None
     doubted: bool = False
+    own_doubt: bool = False
+    asked: bool = False
     placed: Placed | None = None
     chain: np.ndarray | None = None
     chain_guess: Guess | None = None
@@ -205,7 +207,7 @@ def _judged(state: TrackerState, ev: Evidence, config: Config, s: _Step) -> _Ste
     """Rule 3's WEAK: high residuals, no depth, a doubted solve no feature start confirms
     (``Confirm``), or a keyframe made at a guess."""
     kf, res = s.kf, s.res
-    weak, doubted = None, kf.guess is not None
+    weak, own = None, False
     if s.lost is None:
         weak = weak_reason(ev.facts.has_depth, res, config)
         if weak is None and not s.confirmed:
@@ -216,18 +218,24 @@ def _judged(state: TrackerState, ev: Evidence, config: Config, s: _Step) -> _Ste
                 if not ev.asked(Confirm):
                     return Confirm(kf, res)
                 weak = None if ev.answer(Confirm) else far + ", not confirmed by features"
-            doubted = doubted or weak is not None
+            own = weak is not None
         weak = weak or (kf.guess.reason if kf.guess is not None else None)
-    return dataclasses.replace(s, weak=weak, doubted=doubted)
+    return dataclasses.replace(s, weak=weak, doubted=own or kf.guess is not None,
+                               own_doubt=own)
 
 
 def _found_again(state: TrackerState, ev: Evidence, config: Config, s: _Step
                  ) -> _Step | Relocalise:
-    """Rule 4: with the map, a lost or doubted frame, or one tracked from a keyframe made at
-    a guess, asks the map where it is; a verified place makes it OK against that keyframe
-    (its pose in its own chain kept, ``chain``, to move the chain with it)."""
+    """Rule 4: with the map, a lost or doubted frame asks the map where it is, and a frame
+    tracked from a keyframe made at a guess does at most every ``map_chain_query_s``; a
+    verified place makes it OK against that keyframe (its pose in its own chain kept,
+    ``chain``, to move the chain with it)."""
     if not (config.map and ev.facts.num_edges > 0 and (s.lost is not None or s.doubted)):
         return s
+    if s.lost is None and not s.own_doubt and state.asked_t is not None and \
+            ev.facts.timestamp - state.asked_t < config.map_chain_query_s:
+        return s  # a chain made at a guess, asked a moment ago
+    s = dataclasses.replace(s, asked=True)
     if not ev.asked(Relocalise):
         if s.lost is not None:
             return Relocalise(state.motion.poses[-1])
@@ -356,7 +364,11 @@ def _concluded(state: TrackerState, ev: Evidence, config: Config, s: _Step) -> D
     """The state the next frame starts from (the motion pushed; the device's prediction
     inputs: the solve's own float32 pose when nothing changed, as the scan carries it, else
     from the world poses) and the frame's result."""
-    new = dataclasses.replace(s.new, motion=s.new.motion.push(s.pose, ev.facts.timestamp))
+    # a frame tracked in a chain made at a guess that asked the map: the chain's clock
+    asked_t = None if s.placed is not None or s.new.keyframe.guess is None else (
+        ev.facts.timestamp if s.asked and s.lost is None else state.asked_t)
+    new = dataclasses.replace(s.new, motion=s.new.motion.push(s.pose, ev.facts.timestamp),
+                              asked_t=asked_t)
     plain = (s.lost is None and s.kf.id == state.keyframe.id and s.made is None
              and s.res is ev.solve and not ev.intrinsics_moved)
     rel = ((np.asarray(s.res.T_c_k, np.float32), state.motion.rel[0]) if plain

@@ -213,6 +213,16 @@ class Odometry:
         self.close()
         self._start(self._given[2] if pose is None else np.asarray(pose, np.float64))
 
+    def finish(self) -> None:
+        """Finish what the back end has pending, as at the end of a run: the window's
+        refinements are taken, the loops' searches join the pose graph and a last solve
+        moves the keyframes and the frames tracked from them (``corrections``, ``poses()``;
+        the results keep the poses as reported). Tracking may go on after it.
+        RuntimeError while a frame is in flight."""
+        if self._in_flight:
+            raise RuntimeError("complete() the frame in flight before finish()")
+        self.state = decision.follow(self.state, self._backend.finish(self.state.index - 1))
+
     def close(self) -> None:
         """Stop the back end's workers: the window's (refinements not taken yet are dropped),
         the keyframe map's (keyframes made are described first) and the loops' (a search or

@@ -29,6 +29,7 @@ from __future__ import annotations
 import copy
 from collections.abc import Callable
 from functools import partial
+from typing import NamedTuple
 
 import jax
 import numpy as np
@@ -67,6 +68,10 @@ from .verify import SECOND_DEG, SECOND_M, agree, verified
 #: keyframe's across a wide baseline (teddy 17 degrees apart: 30 ratio-test matches against
 #: none with 1000); only relocalising frames pay the ~3 ms more
 QUERY_FEATURES = 2000
+#: keyframes a loop search tries, most alike first: recognition's top 3 hold a keyframe that
+#: sees the query well for 94-100 % of the shared clips' frames (scripts/place_recognition.py),
+#: and each costs the loops' worker a PnP and one or two alignments
+LOOP_CANDIDATES = 3
 #: Lowe's ratio for the matches PnP starts from: looser than the recovery's 0.8 (more
 #: matches across a wide baseline; RANSAC, guided matching and the edge solve's
 #: verification after it keep a wrong pose out)
@@ -97,7 +102,7 @@ class Places:
                                         edge_points(edges, self.map.intrinsics), None, None,
                                         anchored=kf.guess is None)):
             return
-        self._describing.submit(0, kf.id, partial(
+        self._describing.submit(kf.id, kf.id, partial(
             describe, self.ferns, kf.features, frame.depth, intrinsics,
             min_depth=config.min_depth, max_depth=config.max_depth))
 
@@ -118,10 +123,10 @@ class Places:
         self.map.anchor(keys, correction)
         return keys
 
-    def settle(self) -> None:
-        """The keyframes described so far take their appearance, in the order they were
-        made (waiting for the worker where needed)."""
-        for key, appearance in self._describing.due(None):
+    def settle(self, before: int | None = None) -> None:
+        """The keyframes made so far (``before``: those with a smaller id) take their
+        appearance, in the order they were made (waiting for the worker where needed)."""
+        for key, appearance in self._describing.due(None if before is None else before - 1):
             self.map.describe(key, appearance.landmarks, appearance.code)
 
     # -- what the decision asks ---------------------------------------------------------------
@@ -129,66 +134,39 @@ class Places:
                    timestamp: float, found: Detections | None) -> Placed | None:
         """Where the map places the frame (module doc; ``found``: its keypoints), or None."""
         self.settle()
-        config = self.config
         if frame.gray is None or found is None or not len(self.map):
             return None
-        code = encode(self.ferns, frame.gray, frame.depth)
-        how = {c.id: "place recognition"
-               for c in self.map.recognise(code, k=config.map_candidates)}
-        if ask.guess is not None:
-            for c in self.map.overlapping(ask.guess, k=1, min_overlap=config.map_overlap):
-                how.setdefault(c.id, "the guessed pose")
-        if not how:
+        candidates = self._by_appearance(encode(self.ferns, frame.gray, frame.depth),
+                                         k=self.config.map_candidates, guess=ask.guess)
+        if not candidates:
             return None
-        kps = found.get("orb", QUERY_FEATURES)
         # the rolling shutter's velocity: the frame's own motion as its chain tracked it
         # (its last pose is in the chain's frame, not the map's), none for a lost frame
-        rate = solver.rate(timestamp, frame, state.motion.times)
-        _, usable = aligner(solver, state, frame, timestamp)
+        align, usable = _aligner(solver, state, frame, timestamp, ask.motion)
+        return place(candidates, found.get("orb", QUERY_FEATURES), frame, align, usable,
+                     reference_share(state, self.config), self.config, intr=solver.intrinsics,
+                     label="found again")
 
-        def align(kf: Keyframe, fr: Frame, T_c_k: np.ndarray):
-            last = None if ask.motion is None else kf.pose @ inverse_np(T_c_k) \
-                @ inverse_np(ask.motion)
-            return solver.align(kf, fr, T_c_k, rate, last)
-        reference = reference_share(state, config)
-        for key, source in how.items():
-            placed = self._found_on(key, source, kps, solver, frame, align, usable, reference)
-            if placed is not None:
-                return placed
-        return None
+    def _by_appearance(self, code: np.ndarray, *, k: int, guess: np.ndarray | None = None,
+                       exclude=()) -> list[_Candidate]:
+        """The ``k`` anchored keyframes (not in ``exclude``) whose fern codes are most like
+        ``code``, and, with a ``guess`` (T_world_cam), the keyframe a camera there sees with
+        the nearest view (``map_overlap`` or more of it), as ``_Candidate``s: the map's
+        entries as they are now, which a search beside tracking may read."""
+        how = {c.id: "place recognition"
+               for c in self.map.recognise(code, k=k, exclude=exclude)}
+        if guess is not None:
+            for c in self.map.overlapping(guess, k=1, min_overlap=self.config.map_overlap,
+                                          exclude=exclude):
+                how.setdefault(c.id, "the guessed pose")
+        return [_Candidate(self.map[key], source, self._confirmers(key, exclude))
+                for key, source in how.items()]
 
-    def _found_on(self, key: int, source: str, kps, solver: Solver, frame: Frame, align,
-                  usable, reference: float | None) -> Placed | None:
-        """The frame placed on keyframe ``key`` from its landmarks' pose (module doc), or
-        None."""
-        config, entry = self.config, self.map[key]
-        if entry.landmarks is None:
-            return None
-        start = landmark_pose(entry.landmarks, kps, solver.intrinsics, ratio=QUERY_RATIO)
-        if start is None:
-            return None
-        start = refine_pose(entry.landmarks, kps, start, solver.intrinsics)
-        kf = _keyframe(entry)
-        out = align(kf, frame, start.T_c_k)
-        standard = entry.share or reference or 1.0
-        if not verified(out, usable, basin_px=basin_px(config), standard=standard,
-                        ratio=config.lost_share_ratio):
-            return None
-        note = (f"found again: keyframe {key} ({source}, {start.inliers} ORB inliers, "
-                f"inlier share {inlier_share(out):.2f}")
-        if verified(out, usable, basin_px=basin_px(config), standard=standard,
-                    ratio=config.doubt_share_ratio):
-            return Placed(kf, out, note + ")")
-        other = confirmed(kf, out, self._confirmers(kf.id), frame, align, usable, reference,
-                          config)
-        return None if other is None else Placed(kf, out,
-                                                 note + f", confirmed by keyframe {other})")
-
-    def _confirmers(self, key: int, exclude=()) -> list[tuple[Keyframe, float | None]]:
+    def _confirmers(self, key: int, exclude=()) -> list[MapKeyframe]:
         """The two anchored keyframes (not in ``exclude``) most covisible with keyframe
-        ``key``, as ``Keyframe``s with their standard inlier share (as they are now)."""
+        ``key``, as they are now."""
         near = sorted(self.map.covisible(key).items(), key=lambda kv: -kv[1])
-        return [(_keyframe(self.map[k]), self.map[k].share) for k, _ in
+        return [self.map[k] for k, _ in
                 [kv for kv in near if self.map[kv[0]].anchored and kv[0] not in exclude][:2]]
 
     def revisit(self, solver: Solver, state: TrackerState, frame: Frame, ask: Revisit,
@@ -213,34 +191,32 @@ class Places:
     def loop(self, solver: Solver, state: TrackerState, frame: Frame, kf: Keyframe,
              exclude: set[int], timestamp: float) -> Callable[[], Placed | None] | None:
         """The search for an older keyframe of the map, not in ``exclude``, that sees the new
-        keyframe ``kf`` (made from ``frame``, after the frames of ``state``) at its pose
-        (``map.loops``): verified as ``revisit`` verifies, and confirmed as a doubtful frame
-        found again is (``confirmed``: a keyframe covisible with the old one, not in
-        ``exclude``). The candidates are chosen now; what is returned aligns the frame to
-        them and reads nothing that changes (it may run on another thread): the solve of the
-        frame against the first that passes (``result.T_c_k``: T_kf_old), or None. None: no
-        candidate."""
-        candidates = self._candidates(kf.pose, exclude)
+        keyframe ``kf`` (made from ``frame``, after the frames of ``state``), found by what
+        the camera sees and verified without the chain's pose (``map.loops``): the
+        ``LOOP_CANDIDATES`` keyframes whose fern codes are most like the frame's, each a
+        start from its landmarks matched to the frame's keypoints (PnP in RANSAC), refined by
+        the edge alignment, verified (``verify.verified``) and always confirmed by a second
+        keyframe covisible with the old one (``confirmed``). The candidates are chosen now;
+        what is returned reads nothing that changes (it runs on the loops' worker): the
+        solve of the frame against the first that passes (``result.T_c_k``: T_kf_old), or
+        None. None: no candidate (no gray image, nothing alike)."""
+        self.settle(before=kf.id)  # its own description may go on beside tracking
+        if frame.gray is None or kf.features is None:
+            return None
+        candidates = self._by_appearance(encode(self.ferns, frame.gray, frame.depth),
+                                         k=LOOP_CANDIDATES, exclude=exclude)
         if not candidates:
             return None
-        confirmers = {c.id: self._confirmers(c.id, exclude) for _, c in candidates}
         solver = copy.copy(solver)  # its intrinsics as they are now
+        # the frame's own motion in its chain, for the rolling shutter's velocity
+        motion = inverse_np(state.motion.poses[-1]) @ kf.pose if state.motion.poses else None
+        reference, config, found = reference_share(state, self.config), self.config, kf.features
 
         def verify() -> Placed | None:
-            align, usable = aligner(solver, state, frame, timestamp)
-            reference = reference_share(state, self.config)
-            for old, c in candidates:
-                found = self._verified(align, usable, reference, frame, kf.pose, [(old, c)])
-                if found is None:
-                    continue
-                out = found[1]
-                other = confirmed(old, out, confirmers[c.id], frame, align, usable,
-                                  reference, self.config)
-                if other is not None:
-                    return Placed(old, out, f"loop: keyframe {kf.id} to keyframe {c.id} "
-                                  f"(predicted overlap {c.score:.2f}, inlier share "
-                                  f"{inlier_share(out):.2f}, confirmed by keyframe {other})")
-            return None
+            align, usable = _aligner(solver, state, frame, timestamp, motion)
+            return place(candidates, found.get("orb", QUERY_FEATURES), frame, align, usable,
+                         reference, config, intr=solver.intrinsics, label="loop",
+                         always_confirm=True, newer=kf.id)
         return verify
 
     def _candidates(self, pose: np.ndarray, exclude) -> list[tuple[Keyframe, Candidate]]:
@@ -264,22 +240,84 @@ class Places:
         return None
 
 
-def confirmed(kf: Keyframe, res, confirmers: list[tuple[Keyframe, float | None]],
-              frame: Frame, align, usable, reference: float | None, config: Config
-              ) -> int | None:
-    """The first of ``confirmers`` (keyframe, its standard share) that confirms the pose
-    ``res`` gives the frame against ``kf``: aligned from that pose, verified at the lost
-    ratio of its own standard, and placing the frame within ``SECOND_M``, ``SECOND_DEG`` of
-    the same world pose; its id, or None."""
+class _Candidate(NamedTuple):
+    """A keyframe of the map a search tries: its entry (pose as it was when chosen, edges,
+    landmarks, standard share), how it was found and the keyframes that may confirm it."""
+
+    entry: MapKeyframe
+    source: str
+    confirmers: list[MapKeyframe]
+
+
+def place(candidates: list[_Candidate], kps, frame: Frame, align, usable,
+          reference: float | None, config: Config, *, intr: Intrinsics, label: str,
+          always_confirm: bool = False, newer: int | None = None) -> Placed | None:
+    """The frame placed on the first of ``candidates`` that passes (module doc): a start
+    from the candidate's landmarks matched to the frame's keypoints ``kps`` (EPnP in RANSAC,
+    refined by guided matching), the edge alignment from there (``align``, ``usable``:
+    ``_aligner``'s), verified at the lost ratio of the candidate's standard share (its own
+    best, else ``reference``), and at the doubt ratio or confirmed by a second keyframe
+    (``confirmed``; ``always_confirm``: confirmed in any case). None: none passes. Reads
+    only what it is given: it may run beside tracking."""
+    basin = basin_px(config)
+    for c in candidates:
+        entry = c.entry
+        if entry.landmarks is None:
+            continue
+        start = landmark_pose(entry.landmarks, kps, intr, ratio=QUERY_RATIO)
+        if start is None:
+            continue
+        start = refine_pose(entry.landmarks, kps, start, intr)
+        kf = _keyframe(entry)
+        out = align(kf, frame, start.T_c_k)
+        standard = entry.share or reference or 1.0
+        if not verified(out, usable, basin_px=basin, standard=standard,
+                        ratio=config.lost_share_ratio):
+            continue
+        what = f"keyframe {newer} to keyframe {entry.id}" if newer is not None \
+            else f"keyframe {entry.id}"
+        note = (f"{label}: {what} ({c.source}, {start.inliers} ORB inliers, inlier share "
+                f"{inlier_share(out):.2f}")
+        if not always_confirm and verified(out, usable, basin_px=basin, standard=standard,
+                                           ratio=config.doubt_share_ratio):
+            return Placed(kf, out, note + ")")
+        other = confirmed(kf, out, c.confirmers, frame, align, usable, reference, config)
+        if other is not None:
+            return Placed(kf, out, note + f", confirmed by keyframe {other})")
+    return None
+
+
+def confirmed(kf: Keyframe, res, confirmers: list[MapKeyframe], frame: Frame, align, usable,
+              reference: float | None, config: Config) -> int | None:
+    """The first of ``confirmers`` (keyframes of the map) that confirms the pose ``res``
+    gives the frame against ``kf``: aligned from that pose, verified at the lost ratio of
+    its own standard share, and placing the frame within ``SECOND_M``, ``SECOND_DEG`` of the
+    same world pose; its id, or None."""
     pose = kf.pose @ inverse_np(np.asarray(res.T_c_k, np.float64))
-    for other, share in confirmers:
+    for entry in confirmers:
+        other = _keyframe(entry)
         out = align(other, frame, inverse_np(pose) @ other.pose)
-        if verified(out, usable, basin_px=basin_px(config), standard=share or reference or 1.0,
+        if verified(out, usable, basin_px=basin_px(config),
+                    standard=entry.share or reference or 1.0,
                     ratio=config.lost_share_ratio) and agree(
                 pose, other.pose @ inverse_np(np.asarray(out.T_c_k, np.float64)),
                 metres=SECOND_M, degrees=SECOND_DEG):
             return other.id
     return None
+
+
+def _aligner(solver: Solver, state: TrackerState, frame: Frame, timestamp: float,
+             motion: np.ndarray | None):
+    """``align(kf, frame, T_cur_kf)`` and ``usable(solve)`` for a frame placed on keyframes
+    of the map: the rolling shutter's velocity from ``motion`` (T_last_cur: the frame's own
+    motion in its chain, whose frame is not the map's; None: none, for a lost frame)."""
+    rate = solver.rate(timestamp, frame, state.motion.times)
+    _, usable = aligner(solver, state, frame, timestamp)
+
+    def align(kf: Keyframe, fr: Frame, T_c_k: np.ndarray):
+        last = None if motion is None else kf.pose @ inverse_np(T_c_k) @ inverse_np(motion)
+        return solver.align(kf, fr, T_c_k, rate, last)
+    return align, usable
 
 
 def _keyframe(entry: MapKeyframe) -> Keyframe:

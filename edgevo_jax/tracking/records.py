@@ -91,13 +91,16 @@ class Motion:
 @dataclass(frozen=True)
 class TrackerState:
     """What the tracker carries from frame to frame (module doc). ``previous``: the earlier
-    keyframes recovery tries, oldest first; ``index``: frames concluded so far."""
+    keyframes recovery tries, oldest first; ``asked_t``: when a frame tracked in a chain made
+    at a guess last asked the map where it is (s; None: none since the chain was made or
+    tied); ``index``: frames concluded so far."""
 
     keyframe: Keyframe | None = None
     previous: tuple[Keyframe, ...] = ()
     motion: Motion = Motion()
     shares: tuple[float, ...] = ()
     tracked_t: float | None = None
+    asked_t: float | None = None
     index: int = 0
     num_keyframes: int = 0
 
