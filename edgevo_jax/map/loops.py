@@ -8,8 +8,8 @@ keyframe to an older keyframe of the map that the graph does not tie to it withi
 each placed by its landmarks matched to the new keyframe's frame (PnP, no pose of the
 chain's), refined by the edge alignment, verified and confirmed by a keyframe beside the
 old one (``tracking.places.Places.loop``), on the worker; the search is taken
-``Config.loop_lag`` frames later (``found``). One search is in flight at a time, and one per new keyframe
-while a revisit goes on (``searches``).
+``Config.loop_lag`` frames later (``found``). One search is in flight at a time, and one
+per new keyframe while a revisit goes on (``searches``).
 
 Information. The solve's covariance (J^T W J)^-1 counts the pixels' noise only: it gives a
 keyframe's pose to a tenth of a millimetre where the tracker's bias moves it by millimetres.
