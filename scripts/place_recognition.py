@@ -14,7 +14,9 @@ door). The right keyframe is the one the query's camera would see best: the high
 predicted overlap (``map.predicted_overlap``) of the keyframe's points at the two frames'
 ground-truth poses. Reported: the share of queries whose right keyframe is first (top 1) and
 among the first ``Config.map_candidates`` (top 3), and of those with any keyframe at
-``Config.map_overlap`` or more, the share with such a keyframe among the first three.
+``Config.map_overlap`` or more, the share with such a keyframe among the first three; and
+the top 3 split by the change of viewpoint between the query and its right keyframe
+(``DISTANCE_BINS``, ``ANGLE_BINS``).
 Timing: encoding a frame, then ``KeyframeMap.recognise`` and ``overlapping`` over maps of 100
 and 1,000 keyframes (codes and points from the clips, repeated with a tenth of the ferns
 redrawn), median and mean over 200 queries. Prints and writes JSON.
@@ -34,7 +36,7 @@ import numpy as np
 from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets.tum import load_sequence
 from edgevo_jax.frontend.selection import KeyframeEdges
-from edgevo_jax.geometry import exp_np, inverse_np
+from edgevo_jax.geometry import exp_np, inverse_np, rotation_angle_np
 from edgevo_jax.image.preprocess import preprocess
 from edgevo_jax.map import KeyframeMap, MapKeyframe, encode, make_ferns, predicted_overlap
 from edgevo_jax.provenance import machine_info
@@ -67,6 +69,7 @@ def recall(seq, *, every: int, query_every: int, apart_s: float, config: Config)
              or i % query_every == 0}
     keys = [i for i in ok if i % every == 0]
     top1 = top3 = useful = has_useful = asked = 0
+    viewpoints: list[tuple[float, float, bool]] = []  # (m, degrees, right one in the top 3)
     for q in (i for i in ok if i % query_every == 0):
         near = [k for k in keys if abs(seq.timestamps[k] - seq.timestamps[q]) > apart_s]
         if not near:
@@ -81,6 +84,9 @@ def recall(seq, *, every: int, query_every: int, apart_s: float, config: Config)
         ranked = [near[j] for j in np.argsort(-score, kind="stable")]
         right = near[int(np.argmax(share))]
         first = ranked[:config.map_candidates]
+        apart = inverse_np(gt[right]) @ gt[q]
+        viewpoints.append((float(np.linalg.norm(apart[:3, 3])),
+                           float(np.degrees(rotation_angle_np(apart))), right in first))
         asked += 1
         top1 += ranked[0] == right
         top3 += right in first
@@ -89,7 +95,24 @@ def recall(seq, *, every: int, query_every: int, apart_s: float, config: Config)
             useful += any(share[near.index(k)] >= config.map_overlap for k in first)
     return {"queries": asked, "keyframes": len(keys), "top1": top1 / max(asked, 1),
             "top3": top3 / max(asked, 1), "queries_with_a_keyframe_over_the_bar": has_useful,
-            "one_over_the_bar_in_top3": useful / max(has_useful, 1)}
+            "one_over_the_bar_in_top3": useful / max(has_useful, 1),
+            "top3_by_viewpoint": by_viewpoint(viewpoints)}
+
+
+#: bins of the change of viewpoint between a query and its right keyframe: metres, degrees
+DISTANCE_BINS, ANGLE_BINS = (0.0, 0.1, 0.3, np.inf), (0.0, 5.0, 15.0, np.inf)
+
+
+def by_viewpoint(rows: list[tuple[float, float, bool]]) -> list[dict]:
+    """Top-3 recall by the change of viewpoint (``DISTANCE_BINS`` x ``ANGLE_BINS``): per bin
+    its bounds, its queries and the share with the right keyframe among the first three."""
+    out = []
+    for d0, d1 in zip(DISTANCE_BINS[:-1], DISTANCE_BINS[1:], strict=True):
+        for a0, a1 in zip(ANGLE_BINS[:-1], ANGLE_BINS[1:], strict=True):
+            hits = [h for d, a, h in rows if d0 <= d < d1 and a0 <= a < a1]
+            out.append({"metres": [d0, d1], "degrees": [a0, a1], "queries": len(hits),
+                        "top3": float(np.mean(hits)) if hits else None})
+    return out
 
 
 def timing(seqs, config: Config) -> dict:
@@ -159,6 +182,11 @@ def main(argv: Sequence[str] | None = None) -> int:
               f"{100 * r['top3']:.0f} %; one over the {config.map_overlap:g} bar in the first "
               f"{config.map_candidates}: {100 * r['one_over_the_bar_in_top3']:.0f} % of "
               f"{r['queries_with_a_keyframe_over_the_bar']}", flush=True)
+        for b in r["top3_by_viewpoint"]:
+            if b["queries"]:
+                print(f"  {b['metres'][0]:g}-{b['metres'][1]:g} m, {b['degrees'][0]:g}-"
+                      f"{b['degrees'][1]:g} deg apart: {b['queries']} queries, top 3 "
+                      f"{100 * b['top3']:.0f} %")
     times = timing(seqs, config)
     for n in ("100", "1000"):
         print(f"{n} keyframes: recognise {times[n]['recognise_ms']['mean']:.3f} ms mean "

@@ -8,8 +8,8 @@ keyframe to an older keyframe of the map that the graph does not tie to it withi
 each placed by its landmarks matched to the new keyframe's frame (PnP, no pose of the
 chain's), refined by the edge alignment, verified and confirmed by a keyframe beside the
 old one (``tracking.places.Places.loop``), on the worker; the search is taken
-``Config.loop_lag`` frames later (``found``). One search is in flight at a time, and one
-per new keyframe while a revisit goes on (``searches``).
+``Config.loop_lag`` frames later (``found``). One search is in flight at a time
+(``searches``).
 
 Information. The solve's covariance (J^T W J)^-1 counts the pixels' noise only: it gives a
 keyframe's pose to a tenth of a millimetre where the tracker's bias moves it by millimetres.
@@ -112,7 +112,6 @@ class Loops:
         self.solved: list[Closed] = []  # every solve taken, in order
         self._warmed: set[int] = set()  # node slots whose program is compiled (or asked)
         self._count = 0  # keyframes told
-        self._revisiting = False  # the last search taken found a loop
 
     # -- what the tracker tells it --------------------------------------------------------
     def keyframe(self, key: int, parent: int | None, covariance: np.ndarray | None) -> None:
@@ -162,11 +161,9 @@ class Loops:
 
     def searches(self) -> bool:
         """Whether a new keyframe looks for a loop: when no search is in flight (one at a
-        time, as the worker is one thread and each search costs a few alignments of its
-        time), and every new keyframe while the last search taken found one (a place seen
-        again: each keyframe of the revisit tied to it pins the way back to the old way, not
-        only its first)."""
-        return not self._searches or self._revisiting
+        time, as the worker is one thread: a place needs one loop edge, not one per
+        keyframe, and each search costs a few alignments of the worker's time)."""
+        return not self._searches
 
     def search(self, key: int, verify: Callable[[], Any], frame_index: int) -> None:
         """Run the loop search of keyframe ``key`` (``tracking.places.Places.loop``: a
@@ -179,7 +176,6 @@ class Loops:
         the order asked, as edges of the graph (``add``)."""
         out = []
         for key, placed in self._searches.due(frame_index):
-            self._revisiting = placed is not None
             if placed is not None:
                 out.append(self.add(placed.keyframe.id, key, placed.result.T_c_k,
                                     placed.result.covariance, placed.note))
