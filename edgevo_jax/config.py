@@ -193,11 +193,11 @@ class Config:
     over on a revisit, and for a keyframe to be tried at a guessed pose. Why:
     ``docs/decisions.md``, "The keyframe map"."""
     map_chain_query_s: float = 0.25
-    """[s] A chain of keyframes made at a guess asks the map where it is at most this often
-    (its frames are tracked, only their frame is not the map's): 4 queries a second find
-    the place within 1 s of its coming into view, at a fraction of a query per frame. Frames
-    lost or doubted by their own solve ask at every frame. Why: ``docs/decisions.md``,
-    "Loops found by what the camera sees"."""
+    """[s] A chain of keyframes made at a guess asks the map where it is at every frame in
+    its first second, then at most this often (its frames are tracked, only their frame is
+    not the map's): 4 queries a second find the place within 1 s of its coming into view, at
+    a fraction of a query per frame. Frames lost or doubted by their own solve ask at every
+    frame. Why: ``docs/decisions.md``, "Loops found by what the camera sees"."""
     loops: bool = True
     """[-] Close loops (with ``map``): a new keyframe is looked for, beside tracking, among
     the older keyframes of the map that look like it (place recognition over the whole

@@ -91,6 +91,11 @@ __all__ = ["SHARE_HISTORY", "Confirm", "Decision", "Evidence", "FrameFacts", "Gu
            "decide", "follow", "inlier_share", "lost_reason", "reference_share",
            "relative_from_world", "under", "weak_reason"]
 
+#: a chain made at a guess asks the map at every frame for this long after it began (s): its
+#: place is most likely in view then; after it, at most every ``Config.map_chain_query_s``
+CHAIN_EAGER_S = 1.0
+
+
 # -- keyframes that moved ------------------------------------------------------------------------
 def follow(state: TrackerState, moved: Sequence[Any]) -> TrackerState:
     """The state with the keyframes that moved in the map's record of poses (each with
@@ -226,15 +231,18 @@ def _judged(state: TrackerState, ev: Evidence, config: Config, s: _Step) -> _Ste
 
 def _found_again(state: TrackerState, ev: Evidence, config: Config, s: _Step
                  ) -> _Step | Relocalise:
-    """Rule 4: with the map, a lost or doubted frame asks the map where it is, and a frame
-    tracked from a keyframe made at a guess does at most every ``map_chain_query_s``; a
-    verified place makes it OK against that keyframe (its pose in its own chain kept,
-    ``chain``, to move the chain with it)."""
+    """Rule 4: with the map, a lost or doubted frame asks the map where it is, and so does a
+    frame tracked from a keyframe made at a guess, at every frame in the chain's first
+    ``CHAIN_EAGER_S`` and at most every ``map_chain_query_s`` after; a verified place makes
+    it OK against that keyframe (its pose in its own chain kept, ``chain``, to move the
+    chain with it)."""
     if not (config.map and ev.facts.num_edges > 0 and (s.lost is not None or s.doubted)):
         return s
-    if s.lost is None and not s.own_doubt and state.asked_t is not None and \
-            ev.facts.timestamp - state.asked_t < config.map_chain_query_s:
-        return s  # a chain made at a guess, asked a moment ago
+    t, guess = ev.facts.timestamp, s.kf.guess
+    if s.lost is None and not s.own_doubt and guess is not None and \
+            t - guess.t >= CHAIN_EAGER_S and state.asked_t is not None and \
+            t - state.asked_t < config.map_chain_query_s:
+        return s  # a chain made at a guess a while ago, asked a moment ago
     s = dataclasses.replace(s, asked=True)
     if not ev.asked(Relocalise):
         if s.lost is not None:
@@ -348,9 +356,10 @@ def _keyframed(state: TrackerState, ev: Evidence, config: Config, s: _Step
     guess = s.kf.guess
     if config.map and s.lost is not None:
         guess = Guess(state.index - 1, made.keyframe.id,
-                      f"made at a guess after {s.since:.1f} s lost")
+                      f"made at a guess after {s.since:.1f} s lost", ev.facts.timestamp)
     elif config.map and guess is None and s.doubted and s.placed is None and s.weak:
-        guess = Guess(state.index - 1, made.keyframe.id, "made from a frame not verified")
+        guess = Guess(state.index - 1, made.keyframe.id, "made from a frame not verified",
+                      ev.facts.timestamp)
     kf = made.keyframe
     if guess is not None:
         kf = dataclasses.replace(kf, guess=guess)

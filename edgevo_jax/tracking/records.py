@@ -17,15 +17,16 @@ from .results import FrameResult
 
 
 class Guess(NamedTuple):
-    """Where a chain of keyframes made at a guess began: the frame (its index) at which
-    keyframe ``keyframe`` was made at a pose nothing verified (``why``: a loss's held or
-    predicted pose, or a doubted frame's). Frames tracked from it, or from keyframes made
-    after it in the chain, are not tied to the map until a frame of the chain is found in
-    it."""
+    """Where a chain of keyframes made at a guess began: the frame (its index; its timestamp
+    ``t``, s) at which keyframe ``keyframe`` was made at a pose nothing verified (``why``: a
+    loss's held or predicted pose, or a doubted frame's). Frames tracked from it, or from
+    keyframes made after it in the chain, are not tied to the map until a frame of the
+    chain is found in it."""
 
     frame: int
     keyframe: int
     why: str
+    t: float = 0.0
 
     @property
     def reason(self) -> str:

@@ -418,15 +418,22 @@ def test_a_keyframe_made_at_a_loss_is_guessed_and_frames_tracked_from_it_are_wea
     assert tie.restart and tie.since == 9 and tie.guessed == kf.id
     chain_pose = kf.pose @ np.linalg.inv(shift(0.01))
     np.testing.assert_allclose(tie.correction @ chain_pose, d2.result.pose, atol=1e-12)
-    # asked a moment ago, the chain does not ask again before ``map_chain_query_s``
-    assert d1.state.asked_t == 1.03
-    asked, d3 = conclude(d1.state, solve(0.9), facts(1.2), config=MAP)
-    assert asked == [] and d3.result.state == "WEAK" and d3.state.asked_t == 1.03
-    asked, _ = conclude(d3.state, solve(0.9), facts(1.03 + MAP.map_chain_query_s),
-                        config=MAP, placed=None)
+    # in its first second the chain asks at every frame; after it, not again before
+    # ``map_chain_query_s``
+    assert d1.state.asked_t == 1.03 and kf.guess.t == 1.0
+    asked, e2 = conclude(d1.state, solve(0.9), facts(1.06), config=MAP, placed=None)
     assert asked == [Relocalise]
+    # a second on (frames tracked meanwhile): asked a moment ago, not again before
+    # ``map_chain_query_s``
+    on = dataclasses.replace(e2.state, tracked_t=2.05, asked_t=2.1, keyframe=dataclasses.replace(
+        e2.state.keyframe, since=2.0))
+    asked, d4 = conclude(on, solve(0.9), facts(2.2), config=MAP)
+    assert asked == [] and d4.result.state == "WEAK" and d4.state.asked_t == 2.1
+    asked, d5 = conclude(dataclasses.replace(on, tracked_t=2.3), solve(0.9),
+                         facts(2.1 + MAP.map_chain_query_s), config=MAP, placed=None)
+    assert asked == [Relocalise] and d5.state.asked_t == 2.1 + MAP.map_chain_query_s
     # a frame of the chain doubted by its own solve asks at once
-    asked, _ = conclude(d1.state, solve(0.9, moved=100.0), facts(1.1), config=MAP,
+    asked, _ = conclude(on, solve(0.9, moved=100.0), facts(2.2), config=MAP,
                         confirmed=False, placed=None)
     assert asked == [Confirm, Relocalise]
     np.testing.assert_allclose(d2.state.motion.poses[0], tie.correction @ s1.motion.poses[-1],

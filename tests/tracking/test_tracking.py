@@ -227,3 +227,22 @@ def test_pipelined_runner_equals_synchronous_tracking(bundled):
         got = odo.track(*bundled.load_frame(i), bundled.timestamps[i])
         np.testing.assert_array_equal(got.pose, expected.pose)
         assert got.keyframe == expected.keyframe
+
+
+def test_finish_takes_what_is_pending_and_moves_no_frame_a_refinement_moved(bundled):
+    """``Odometry.finish`` (a run's end): the window's refinements on their way are taken
+    (none dropped), the frames keep their poses (a refinement moves no frame reported), and
+    tracking goes on after it; a frame in flight is refused."""
+    seq = bundled
+    with Odometry(Config(mapping_lag=50), seq.intrinsics) as odo:
+        reported = [odo.track(*seq.load_frame(i), seq.timestamps[i]).pose for i in range(6)]
+        handed = odo.num_keyframes - len(odo.refinements)
+        assert handed >= 1  # refinements still on their way at a lag of 50 frames
+        odo.finish()
+        assert odo.num_keyframes - len(odo.refinements) == 0
+        np.testing.assert_array_equal(odo.poses(), np.stack(reported))
+        odo.track(*seq.load_frame(6), seq.timestamps[6])
+        pending = odo.submit(preprocess(*seq.load_frame(7), odo.config), seq.timestamps[7])
+        with pytest.raises(RuntimeError, match="in flight"):
+            odo.finish()
+        odo.complete(pending)
