@@ -52,7 +52,6 @@ from typing import Any
 import numpy as np
 
 from ..config import Config
-from ..derive import basin_px
 from ..frontend.keyframes import keyframe_reason
 from ..geometry import inverse_np, orthonormalise_np
 from ..hostmem import aligned_array
@@ -78,9 +77,11 @@ from .records import (
 from .results import LOST, OK, WEAK, FrameResult
 from .verify import (
     SHARE_HISTORY,
+    far_reason,
     inlier_share,
     lost_reason,
     reference_share,
+    share_doubt,
     under,
     weak_reason,
 )
@@ -216,9 +217,9 @@ def _judged(state: TrackerState, ev: Evidence, config: Config, s: _Step) -> _Ste
     if s.lost is None:
         weak = weak_reason(ev.facts.has_depth, res, config)
         if weak is None and not s.confirmed:
-            weak = _share_doubt(res, s.reference, config)
+            weak = share_doubt(res, s.reference, config)
             gap = None if state.tracked_t is None else ev.facts.timestamp - state.tracked_t
-            far = None if weak is not None else _far_reason(res, config, gap)
+            far = None if weak is not None else far_reason(res, config, gap)
             if far is not None:
                 if not ev.asked(Confirm):
                     return Confirm(kf, res)
@@ -430,30 +431,6 @@ def _tie(guess: Guess | None, key: int, pose: np.ndarray, chain: np.ndarray | No
     if chain is None:
         return Tie(key, restart=True)
     return Tie(key, pose @ inverse_np(chain), guess.frame, guess.keyframe, restart=True)
-
-
-def _share_doubt(res, reference: float | None, config: Config) -> str | None:
-    """Why a solve is doubtful (WEAK) by its share: under ``doubt_share_ratio`` of the
-    recent frames' from every start, with no feature start to confirm it."""
-    doubt = config.doubt_share_ratio
-    if under(res, reference, doubt):
-        return (f"inlier share {inlier_share(res):.2f} under {doubt:g} x the recent "
-                f"{reference:.2f}, not confirmed by features")
-    return None
-
-
-def _far_reason(res, config: Config, gap: float | None) -> str | None:
-    """Why a solve needs a feature start to confirm it (None: it does not): it moved farther
-    from its start than the alignment's basin (``derive.basin_px``), or its frame comes more
-    than ``lost_extrapolate_s`` after the last tracked one (``gap``, s: a start predicted
-    across a gap that long is no evidence, and the recent shares say little of a view that
-    far)."""
-    basin, moved = basin_px(config), float(res.moved)
-    if moved > basin:
-        return f"moved {moved:.0f} px from its start, past the {basin:.0f} px basin"
-    if gap is not None and gap > config.lost_extrapolate_s:
-        return f"{gap:.2f} s after the last tracked frame"
-    return None
 
 
 def _install(state: TrackerState, kf: Keyframe, config: Config) -> TrackerState:

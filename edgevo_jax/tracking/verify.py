@@ -1,6 +1,7 @@
 """Judging a solve: whether it can be used at all (``lost_reason``), whether it is doubtful
-(``weak_reason``, the inlier share against the recent frames': ``reference_share``,
-``under``), the one judgement of a verified alignment (``verified``) and when two poses
+(``weak_reason``; the inlier share against the recent frames': ``reference_share``,
+``under``, ``share_doubt``; a start too far to trust without features: ``far_reason``),
+the one judgement of a verified alignment (``verified``) and when two poses
 agree (``agree``).
 
 An alignment of a frame to a keyframe (a ``frontend.align.TrackResult``) is *verified* when
@@ -26,6 +27,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..config import Config
+from ..derive import basin_px
 from ..geometry import inverse_np, rotation_angle_np
 from .records import TrackerState
 
@@ -79,6 +81,30 @@ def reference_share(state: TrackerState, config: Config) -> float | None:
 def under(res, reference: float | None, ratio: float) -> bool:
     """Whether a result's inlier share is under ``ratio`` x the reference share."""
     return reference is not None and inlier_share(res) < ratio * reference
+
+
+def share_doubt(res, reference: float | None, config: Config) -> str | None:
+    """Why a solve is doubtful (WEAK) by its share: under ``doubt_share_ratio`` of the
+    recent frames' from every start, with no feature start to confirm it."""
+    doubt = config.doubt_share_ratio
+    if under(res, reference, doubt):
+        return (f"inlier share {inlier_share(res):.2f} under {doubt:g} x the recent "
+                f"{reference:.2f}, not confirmed by features")
+    return None
+
+
+def far_reason(res, config: Config, gap: float | None) -> str | None:
+    """Why a solve needs a feature start to confirm it (None: it does not): it moved farther
+    from its start than the alignment's basin (``derive.basin_px``), or its frame comes more
+    than ``lost_extrapolate_s`` after the last tracked one (``gap``, s: a start predicted
+    across a gap that long is no evidence, and the recent shares say little of a view that
+    far)."""
+    basin, moved = basin_px(config), float(res.moved)
+    if moved > basin:
+        return f"moved {moved:.0f} px from its start, past the {basin:.0f} px basin"
+    if gap is not None and gap > config.lost_extrapolate_s:
+        return f"{gap:.2f} s after the last tracked frame"
+    return None
 
 
 #: two alignments against one keyframe agree (converged into one minimum) within this
