@@ -40,9 +40,12 @@ MEDIAN_DEPTH_M = 1.5
 
 
 def revisit_error(poses: np.ndarray, gt: np.ndarray, fx: float) -> tuple[float, float, float]:
-    """The error of the estimated motion from the first frame to the last against the
-    truth's: cm, degrees, and the edge motion it predicts (px, at ``MEDIAN_DEPTH_M``)."""
-    D = inverse_np(inverse_np(gt[0]) @ gt[-1]) @ inverse_np(poses[0]) @ poses[-1]
+    """The error of the estimated motion from the first frame with ground truth to the last
+    against the truth's: cm, degrees, and the edge motion it predicts (px, at
+    ``MEDIAN_DEPTH_M``)."""
+    has = np.flatnonzero(np.isfinite(gt[:, 0, 0]))
+    a, b = has[0], has[-1]
+    D = inverse_np(inverse_np(gt[a]) @ gt[b]) @ inverse_np(poses[a]) @ poses[b]
     t, angle = float(np.linalg.norm(D[:3, 3])), float(rotation_angle_np(D))
     return 100 * t, float(np.degrees(angle)), fx * (t / MEDIAN_DEPTH_M + angle)
 
