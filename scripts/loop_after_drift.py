@@ -29,10 +29,9 @@ import numpy as np
 from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets import load_sequence, there_and_back
 from edgevo_jax.datasets.perturb import perturbed_copy
-from edgevo_jax.geometry import inverse_np, rotation_angle_np
 from edgevo_jax.provenance import machine_info
 from edgevo_jax.reports import digest, int_list, write_json
-from edgevo_jax.runs.measure import accuracy, groundtruth_at, wrong_loops
+from edgevo_jax.runs.measure import accuracy, end_to_end_error, groundtruth_at, wrong_loops
 from edgevo_jax.runs.run import run_sequence
 
 #: the median depth the pixels of predicted edge motion are taken at (m): teddy's scene
@@ -40,13 +39,9 @@ MEDIAN_DEPTH_M = 1.5
 
 
 def revisit_error(poses: np.ndarray, gt: np.ndarray, fx: float) -> tuple[float, float, float]:
-    """The error of the estimated motion from the first frame with ground truth to the last
-    against the truth's: cm, degrees, and the edge motion it predicts (px, at
-    ``MEDIAN_DEPTH_M``)."""
-    has = np.flatnonzero(np.isfinite(gt[:, 0, 0]))
-    a, b = has[0], has[-1]
-    D = inverse_np(inverse_np(gt[a]) @ gt[b]) @ inverse_np(poses[a]) @ poses[b]
-    t, angle = float(np.linalg.norm(D[:3, 3])), float(rotation_angle_np(D))
+    """The chain's error at the revisit (``measure.end_to_end_error``): cm, degrees, and the
+    edge motion it predicts (px, at ``MEDIAN_DEPTH_M``)."""
+    t, angle = end_to_end_error(poses, gt)
     return 100 * t, float(np.degrees(angle)), fx * (t / MEDIAN_DEPTH_M + angle)
 
 

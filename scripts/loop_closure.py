@@ -33,19 +33,11 @@ import numpy as np
 from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets.pingpong import pingpong
 from edgevo_jax.datasets.tum import load_sequence
-from edgevo_jax.geometry import inverse_np, rotation_angle_np
 from edgevo_jax.provenance import machine_info
 from edgevo_jax.reports import digest, int_list, write_json
-from edgevo_jax.runs.measure import accuracy, groundtruth_at, wrong_loops
+from edgevo_jax.runs.measure import accuracy, end_to_end_error, groundtruth_at, wrong_loops
 from edgevo_jax.runs.run import run_sequence
 from edgevo_jax.tracking import places as relocalise
-
-
-def end_to_start(poses: np.ndarray, gt: np.ndarray) -> tuple[float, float]:
-    """The error of the estimated motion from the first frame to the last against the
-    truth's (cm, degrees)."""
-    D = inverse_np(inverse_np(gt[0]) @ gt[-1]) @ inverse_np(poses[0]) @ poses[-1]
-    return 100 * float(np.linalg.norm(D[:3, 3])), float(np.degrees(rotation_angle_np(D)))
 
 
 def forcing_false_loop(n: int):
@@ -79,7 +71,8 @@ def forcing_false_loop(n: int):
 
 def measured(run, seq, gt: np.ndarray, false_loop: bool = False) -> dict:
     """One run's measures (module doc)."""
-    cm, deg = end_to_start(run.poses, gt)
+    m, rad = end_to_end_error(run.poses, gt)
+    cm, deg = 100 * m, float(np.degrees(rad))
     loops = run.loops or {"closed": [], "rejected": [], "solves": []}
     return {
         "ate_m": accuracy(seq.groundtruth, run.timestamps, run.poses)["ate_rmse_m"],

@@ -204,3 +204,12 @@ def wrong_loops(loops: dict | None, seq: Any, *, metres: float = DIVERGED_TRANS_
         wrong += bool(np.linalg.norm(D[:3, 3]) > metres
                       or np.degrees(rotation_angle_np(D)) > degrees)
     return wrong
+
+
+def end_to_end_error(poses: np.ndarray, gt_poses: np.ndarray) -> tuple[float, float]:
+    """The error of the estimated motion from the first frame the ground truth reaches to
+    the last (``gt_poses`` (N, 4, 4), NaN where none) against the truth's: (m, radians)."""
+    has = np.flatnonzero(np.isfinite(gt_poses[:, 0, 0]))
+    a, b = has[0], has[-1]
+    D = inverse_np(inverse_np(gt_poses[a]) @ gt_poses[b]) @ inverse_np(poses[a]) @ poses[b]
+    return float(np.linalg.norm(D[:3, 3])), float(rotation_angle_np(D))
