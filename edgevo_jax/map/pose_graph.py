@@ -60,6 +60,7 @@ from .block_sparse import Blocks, block_jacobi, direct, pcg
 ROBUST_SCALE = math.sqrt(16.81)
 
 _MAX_REJECTS = 6  # rejected tries in a row before LM stops (lam x 10 each)
+_RESOLVED = 64  # steps under 64 eps max|t| (the poses' rounding, eps the dtype's) end a solve
 
 
 class PoseGraph(NamedTuple):
@@ -399,7 +400,8 @@ def optimise(
     robust_scale: the Cauchy scale c on robust edges (default sqrt(16.81): chi-square's 99 %
     quantile with 6 degrees of freedom, so a loop edge as far off as the worst 1 % of inliers
     keeps half its weight); iterations: the LM tries at most; step_tol: stop once a try's
-    largest twist component (m or rad) is below it (or after 6 rejected tries in a row);
+    largest twist component (m or rad) is below it, or below 64 eps max|t| of the start's
+    positions (what the dtype resolves there), or after 6 rejected tries in a row;
     linear_solver: how each linear system (the LM step, the derivative's adjoint) is solved:
     "direct", a sparse LU on the host (``block_sparse.direct``: exact, graphs of a vmapped
     batch one after another), or "cg", preconditioned conjugate gradients on the device
@@ -430,11 +432,13 @@ def optimise(
     def cond(carry):
         k, state = carry
         return (k == 0) | ((k <= iterations) & ((k == 1) |
-                           POSE_GRAPH_DAMPING.continues(state, step_tol, _MAX_REJECTS)))
+                           POSE_GRAPH_DAMPING.continues(state, tol, _MAX_REJECTS)))
 
     # pass 0 evaluates the start (a zero step, kept against an infinite cost, lam back to
     # lam_init): the system is traced once, which halves the compile time
     x0 = jax.vmap(Pose.from_matrix)(start)
+    # a step the poses' own rounding drowns ends the solve too (float32 at 50 m: 0.4 mm)
+    tol = jnp.maximum(step_tol, _RESOLVED * jnp.finfo(start.dtype).eps * jnp.max(jnp.abs(x0.t)))
     blank = jax.tree.map(jnp.zeros_like, jax.eval_shape(evaluate, x0))
     blank = blank._replace(cost=jnp.asarray(jnp.inf, start.dtype),
                            D=jnp.broadcast_to(jnp.eye(6, dtype=start.dtype), blank.D.shape))
