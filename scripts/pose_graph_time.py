@@ -8,12 +8,15 @@ each solved from its drifted odometry chain with node 0 fixed. Ours: cold (the f
 tracing, compiling and one solve) and warm (mean and median of ``--repeats`` calls) with
 each ``--solvers`` linear solver; GTSAM (when installed; a peer only, never a dependency of
 edgevo_jax): ``LevenbergMarquardtOptimizer`` with its default parameters, the first call and
-``--repeats`` more, in float64. Both final costs on one definition (``synthetic_graphs.cost``,
-float64: sum of 0.5 rho(r^T Omega r), Cauchy on the robust edges; GTSAM's
-``BetweenFactorPose3`` error is the same twist, rotation first), LM tries, and the ATE
-(RMS position error, m) of the start and of each solution against the truth.
+``--repeats`` more, in float64. With ``--gradient``, also reverse mode through ours (the
+gradient of the optimised positions' sum of squares in every edge's measurement and
+information: the implicit derivative), cold and warm. Both final costs on one definition
+(``synthetic_graphs.cost``, float64: sum of 0.5 rho(r^T Omega r), Cauchy on the robust
+edges; GTSAM's ``BetweenFactorPose3`` error is the same twist, rotation first), LM tries,
+and the ATE (RMS position error, m) of the start and of each solution against the truth.
 
-    python scripts/pose_graph_time.py --keyframes 100,1000,5000 --sphere --repeats 5
+    python scripts/pose_graph_time.py --keyframes 100,1000,5000 --sphere --solvers direct,cg
+    python scripts/pose_graph_time.py --keyframes 100,1000,5000 --sphere --dtype float64
 """
 
 from __future__ import annotations
@@ -62,6 +65,23 @@ def ours(g: PoseGraph, truth: np.ndarray, solver: str, repeats: int) -> dict:
     cold, warm, sol = timed(lambda: jax.block_until_ready(optimise(g, linear_solver=solver)),
                             repeats)
     return {"solver": solver, **summary(cold, warm, g, sol.poses, truth, int(sol.iterations))}
+
+
+def gradient(g: PoseGraph, solver: str, repeats: int) -> dict:
+    """Reverse mode through ``optimise`` (``linear_solver=solver``): the gradient of the sum of
+    the optimised positions' squares in every edge's measurement and information."""
+    def loss(measured, information):
+        sol = optimise(g._replace(measured=measured, information=information),
+                       linear_solver=solver)
+        return (sol.poses[:, :3, 3] ** 2).sum()
+
+    jax.clear_caches()
+    grad = jax.jit(jax.grad(loss, argnums=(0, 1)))
+    cold, warm, _ = timed(lambda: jax.block_until_ready(grad(g.measured, g.information)),
+                          repeats)
+    return {"solver": f"{solver} gradient", "cold_s": round(cold, 3),
+            "mean_ms": round(statistics.mean(warm), 2),
+            "median_ms": round(statistics.median(warm), 2), "repeats": len(warm)}
 
 
 def gtsam_problem(gtsam, g: PoseGraph):
@@ -125,6 +145,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--sphere", action="store_true", help="also the sphere2500-like graph")
     parser.add_argument("--solvers", default="direct", help="ours: direct and/or cg")
     parser.add_argument("--no-gtsam", action="store_true", help="skip the GTSAM peer")
+    parser.add_argument("--gradient", action="store_true", help="also time jax.grad (ours)")
     parser.add_argument("--dtype", default="float32", choices=["float32", "float64"])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--out", type=Path, default=Path("docs/map/pose_graph_scales.json"))
@@ -137,14 +158,17 @@ def main(argv: list[str] | None = None) -> None:
                 "edge_slots": int(g.valid.shape[0]), "dtype": args.dtype,
                 "start_cost": round(sg.cost(g, g.poses), 3),
                 "ate_start_m": round(sg.ate(g.poses, truth), 5)}
-        found = [ours(g, truth, s, args.repeats) for s in args.solvers.split(",")]
+        solvers = args.solvers.split(",")
+        found = [ours(g, truth, s, args.repeats) for s in solvers]
         found += [] if args.no_gtsam else [peer(g, truth, args.repeats)]
+        found += [gradient(g, s, args.repeats) for s in solvers if args.gradient]
         for row in filter(None, found):
             rows.append({**head, **row})
-            print(f"{name:11s} {row['solver']:11s} cold {row['cold_s']:6.2f} s  warm mean "
-                  f"{row['mean_ms']:8.1f} ms median {row['median_ms']:8.1f} ms  tries "
-                  f"{row['iterations']:3d}  cost {row['cost']:.4f}  ATE {head['ate_start_m']:.3f}"
-                  f" -> {row['ate_m']:.4f} m", flush=True)
+            print(f"{name:11s} {row['solver']:15s} cold {row['cold_s']:6.2f} s  warm mean "
+                  f"{row['mean_ms']:8.1f} ms median {row['median_ms']:8.1f} ms", end="")
+            print("" if "cost" not in row else f"  tries {row['iterations']:3d}  cost "
+                  f"{row['cost']:.4f}  ATE {head['ate_start_m']:.3f} -> {row['ate_m']:.4f} m",
+                  flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     command = " ".join(["python scripts/pose_graph_time.py", *(argv or sys.argv[1:])])
     args.out.write_text(json.dumps({"device": jax.devices()[0].device_kind, "command": command,
