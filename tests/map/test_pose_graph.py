@@ -368,9 +368,11 @@ def run_probe(g: PoseGraph, u, xi, k, s_m, s_o) -> float:
 # -- 6: padding and batching ---------------------------------------------------------------
 
 
-def test_padding_and_vmap_change_nothing():
+@pytest.mark.parametrize("solver", ["direct", "cg"])
+def test_padding_and_vmap_change_nothing(solver):
     """Two graphs padded further (80 nodes, 100 edges) and solved in one vmapped call give
-    the runs of each alone at the default padding."""
+    the runs of each alone at the default padding, by either linear solver (the host's LU
+    one graph after another, the device's PCG batched)."""
     with jax.enable_x64(True):
         rng = np.random.default_rng(11)
         truth = circle(10, 1.5)
@@ -383,12 +385,12 @@ def test_padding_and_vmap_change_nothing():
             return [(a, b, relative(truth, a, b, random_twist(r, 0.02, 0.01)), spd(r, 0.01, 0.01),
                      a == 9) for a, b in pairs]
 
-        alone = [optimise(graph(start, edges(s), fixed=[0], dtype=np.float64), **TIGHT)
-                 for s in (1, 2)]
+        alone = [optimise(graph(start, edges(s), fixed=[0], dtype=np.float64),
+                          linear_solver=solver, **TIGHT) for s in (1, 2)]
         assert float(alone[0].cost) != float(alone[1].cost)
         padded = [graph(start, edges(s), fixed=[0], nodes=80, edge_slots=100, dtype=np.float64)
                   for s in (1, 2)]
-        both = jax.vmap(lambda g: optimise(g, **TIGHT))(
+        both = jax.vmap(lambda g: optimise(g, linear_solver=solver, **TIGHT))(
             jax.tree.map(lambda *a: jnp.stack(a), *padded))
         for b, s in enumerate(alone):
             np.testing.assert_allclose(np.asarray(both.poses[b, :64]), np.asarray(s.poses),
