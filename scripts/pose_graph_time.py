@@ -1,134 +1,178 @@
-"""Time ``backend.pose_graph.optimise`` on synthetic keyframe graphs (one line per size, and a
-JSON file).
+"""Time ``map.pose_graph.optimise`` beside GTSAM 4.3 on the same graphs (one line per graph and
+solver, and a JSON file).
 
-The graph: keyframes every 0.1 m along laps around a room (an ellipse of 1.5 m x 1.0 m
-semi-axes whose size and height vary from lap to lap, the camera looking along the path with
-a little pitch and roll), node 0 fixed at the truth. Tracking edges (k-1 -> k) and window
-edges (k-2 -> k) measure the true relative poses with noise drawn from a plausible tracking
-covariance (5 mm and 3 mrad per keyframe, a little correlated); their information is that
-covariance's inverse. The start is the chain of tracking edges (it drifts). Every ~N/10
-keyframes a robust loop edge ties the keyframe to the nearest one of an earlier lap
-(2 cm / 10 mrad noise). Reported: compile time, warm time (mean and median of ``--repeats``
-calls), LM tries, and the ATE (RMS position error, m) of the start and of the solution
-against the truth.
+The graphs (``map.synthetic_graphs``): keyframe laps around a room of each ``--keyframes``
+size (tracking and window edges, a robust loop edge every ~N/10 keyframes) and, with
+``--sphere``, the sphere2500-like sphere (50 rings of 50 poses, odometry and loop edges),
+each solved from its drifted odometry chain with node 0 fixed. Ours: cold (the first call:
+tracing, compiling and one solve) and warm (mean and median of ``--repeats`` calls) with
+each ``--solvers`` linear solver; GTSAM (when installed; a peer only, never a dependency of
+edgevo_jax): ``LevenbergMarquardtOptimizer`` with its default parameters, the first call and
+``--repeats`` more, in float64. With ``--gradient``, also reverse mode through ours (the
+gradient of the optimised positions' sum of squares in every edge's measurement and
+information: the implicit derivative), cold and warm. Both final costs on one definition
+(``synthetic_graphs.cost``, float64: sum of 0.5 rho(r^T Omega r), Cauchy on the robust
+edges; GTSAM's ``BetweenFactorPose3`` error is the same twist, rotation first), LM tries,
+and the ATE (RMS position error, m) of the start and of each solution against the truth.
 
-    python scripts/pose_graph_time.py --keyframes 100,1000 --repeats 5
+    python scripts/pose_graph_time.py --keyframes 100,1000,5000 --sphere --solvers direct,cg
+    python scripts/pose_graph_time.py --keyframes 100,1000,5000 --sphere --dtype float64
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.metadata
 import json
 import statistics
+import sys
 import time
 from pathlib import Path
 
 import jax
 import numpy as np
 
-from edgevo_jax.geometry import exp_np, inverse_np
-from edgevo_jax.map.pose_graph import PoseGraph, graph, optimise
+from edgevo_jax.map import synthetic_graphs as sg
+from edgevo_jax.map.pose_graph import ROBUST_SCALE, PoseGraph, optimise
 
-SPACING = 0.1  # m between keyframes
-
-
-def trajectory(n: int) -> np.ndarray:
-    """n true poses T_world_cam (n, 4, 4) along the laps (module doc)."""
-    s = SPACING * np.arange(n)
-    # the ellipse's perimeter is ~7.9 m; the angle is close enough to arc length / radius
-    phase = 2.0 * np.pi * s / 7.9
-    lap = s / 7.9
-    scale = 1.0 + 0.08 * np.sin(1.3 * lap)
-    pos = np.stack([1.5 * scale * np.cos(phase), 1.0 * scale * np.sin(phase),
-                    1.2 + 0.1 * np.sin(0.7 * lap + phase)], -1)
-    out = np.zeros((n, 4, 4))
-    for k in range(n):
-        yaw = np.arctan2(1.0 * scale[k] * np.cos(phase[k]), -1.5 * scale[k] * np.sin(phase[k]))
-        tilt = [0.05 * np.sin(3.0 * phase[k]), 0.03 * np.cos(5.0 * phase[k]), yaw]
-        out[k] = exp_np(np.array([0.0, 0.0, 0.0, 0.0, 0.0, tilt[2]])) @ exp_np(
-            np.array([0.0, 0.0, 0.0, tilt[0], tilt[1], 0.0]))
-        out[k, :3, 3] = pos[k]
-    return out
+ROTATION_FIRST = [3, 4, 5, 0, 1, 2]  # our twist [v, w] -> GTSAM's Pose3 tangent [w, v]
 
 
-def covariance(rng: np.random.Generator, sigma_t: float, sigma_r: float) -> np.ndarray:
-    """A 6x6 covariance with these standard deviations, mildly correlated."""
-    L = np.diag([sigma_t] * 3 + [sigma_r] * 3) @ (np.eye(6) + 0.2 * rng.normal(size=(6, 6)))
-    return L @ L.T
-
-
-def synthetic(n: int, seed: int = 0) -> tuple[PoseGraph, np.ndarray, int]:
-    """The graph (module doc), its true poses and its number of loop edges."""
-    rng = np.random.default_rng(seed)
-    truth = trajectory(n)
-    edges = []
-
-    def edge(a: int, b: int, cov: np.ndarray, robust: bool) -> np.ndarray:
-        r = rng.multivariate_normal(np.zeros(6), cov)
-        Z = inverse_np(truth[a]) @ truth[b] @ exp_np(-r)  # T_a^-1 T_b = Z exp(r)
-        edges.append((a, b, Z, np.linalg.inv(cov), robust))
-        return Z
-
-    start = [truth[0]]
-    for k in range(1, n):
-        start.append(start[-1] @ edge(k - 1, k, covariance(rng, 0.005, 0.003), False))
-        if k >= 2:
-            edge(k - 2, k, covariance(rng, 0.008, 0.004), False)
-    loops = 0
-    for k in range(max(n // 10, 1), n, max(n // 10, 1)):
-        earlier = np.arange(max(k - 40, 0))
-        if earlier.size:
-            gaps = np.linalg.norm(truth[earlier, :3, 3] - truth[k, :3, 3], axis=1)
-            near = earlier[np.argmin(gaps)]
-            if np.linalg.norm(truth[near, :3, 3] - truth[k, :3, 3]) < 0.5:
-                edge(int(near), k, covariance(rng, 0.02, 0.01), True)
-                loops += 1
-    return graph(np.stack(start), edges, fixed=[0]), truth, loops
-
-
-def ate(poses: np.ndarray, truth: np.ndarray) -> float:
-    """RMS position error (m) of the first len(truth) poses (node 0 is the common gauge)."""
-    d = np.asarray(poses)[: len(truth), :3, 3] - truth[:, :3, 3]
-    return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
-
-
-def bench(n: int, repeats: int) -> dict:
-    """Compile and time ``optimise`` on the synthetic graph of n keyframes."""
-    g, truth, loops = synthetic(n)
+def timed(call, repeats: int) -> tuple[float, list[float], object]:
+    """The first call's seconds, the next ``repeats`` calls' milliseconds, the last output."""
     t0 = time.perf_counter()
-    sol = jax.block_until_ready(optimise(g))
-    compile_s = time.perf_counter() - t0
-    times = []
+    out = call()
+    cold = time.perf_counter() - t0
+    warm = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        sol = jax.block_until_ready(optimise(g))
-        times.append(1e3 * (time.perf_counter() - t0))
-    return {"keyframes": n, "edges": int(g.valid.sum()), "loop_edges": loops,
-            "node_slots": int(g.fixed.shape[0]), "edge_slots": int(g.valid.shape[0]),
-            "compile_s": round(compile_s, 3), "mean_ms": round(statistics.mean(times), 2),
-            "median_ms": round(statistics.median(times), 2), "repeats": repeats,
-            "iterations": int(sol.iterations), "ate_start_m": round(ate(g.poses, truth), 4),
-            "ate_solution_m": round(ate(sol.poses, truth), 4)}
+        out = call()
+        warm.append(1e3 * (time.perf_counter() - t0))
+    return cold, warm, out
+
+
+def summary(cold: float, warm: list[float], g: PoseGraph, poses, truth, tries: int) -> dict:
+    """One row's numbers: times, LM tries, the cost (float64) and the ATE of ``poses``."""
+    return {"cold_s": round(cold, 3), "mean_ms": round(statistics.mean(warm), 2),
+            "median_ms": round(statistics.median(warm), 2), "repeats": len(warm),
+            "iterations": tries, "cost": round(sg.cost(g, poses), 6),
+            "ate_m": round(sg.ate(poses, truth), 5)}
+
+
+def ours(g: PoseGraph, truth: np.ndarray, solver: str, repeats: int) -> dict:
+    """``optimise`` with ``linear_solver=solver``, compiled afresh."""
+    jax.clear_caches()
+    cold, warm, sol = timed(lambda: jax.block_until_ready(optimise(g, linear_solver=solver)),
+                            repeats)
+    return {"solver": solver, **summary(cold, warm, g, sol.poses, truth, int(sol.iterations))}
+
+
+def gradient(g: PoseGraph, solver: str, repeats: int) -> dict:
+    """Reverse mode through ``optimise`` (``linear_solver=solver``): the gradient of the sum of
+    the optimised positions' squares in every edge's measurement and information."""
+    def loss(measured, information):
+        sol = optimise(g._replace(measured=measured, information=information),
+                       linear_solver=solver)
+        return (sol.poses[:, :3, 3] ** 2).sum()
+
+    jax.clear_caches()
+    grad = jax.jit(jax.grad(loss, argnums=(0, 1)))
+    cold, warm, _ = timed(lambda: jax.block_until_ready(grad(g.measured, g.information)),
+                          repeats)
+    return {"solver": f"{solver} gradient", "cold_s": round(cold, 3),
+            "mean_ms": round(statistics.mean(warm), 2),
+            "median_ms": round(statistics.median(warm), 2), "repeats": len(warm)}
+
+
+def gtsam_problem(gtsam, g: PoseGraph):
+    """The same graph for GTSAM: its factor graph, start values and node indices."""
+    valid, fixed = np.asarray(g.valid), np.asarray(g.fixed)
+    i, j = np.asarray(g.i)[valid], np.asarray(g.j)[valid]
+    nodes = sorted(set(i.tolist()) | set(j.tolist()))
+    P = np.asarray(g.poses, np.float64)
+    graph, start = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    for k in nodes:
+        start.insert(k, gtsam.Pose3(P[k]))
+        if fixed[k]:
+            graph.add(gtsam.NonlinearEqualityPose3(k, gtsam.Pose3(P[k])))
+    info = np.asarray(g.information, np.float64)[valid][:, ROTATION_FIRST][:, :, ROTATION_FIRST]
+    for a, b, Z, om, rob in zip(i, j, np.asarray(g.measured, np.float64)[valid], info,
+                                np.asarray(g.robust)[valid], strict=True):
+        model = gtsam.noiseModel.Gaussian.Information(om)
+        if rob:
+            kernel = gtsam.noiseModel.mEstimator.Cauchy.Create(ROBUST_SCALE)
+            model = gtsam.noiseModel.Robust.Create(kernel, model)
+        graph.add(gtsam.BetweenFactorPose3(int(a), int(b), gtsam.Pose3(Z), model))
+    return graph, start, nodes
+
+
+def peer(g: PoseGraph, truth: np.ndarray, repeats: int) -> dict | None:
+    """GTSAM's Levenberg-Marquardt on the graph, or None (with a message) without GTSAM."""
+    try:
+        import gtsam
+    except ImportError:
+        print("GTSAM is not installed (pip install gtsam): its rows are skipped", flush=True)
+        return None
+    graph, start, nodes = gtsam_problem(gtsam, g)
+
+    def solve():
+        optimiser = gtsam.LevenbergMarquardtOptimizer(graph, start,
+                                                      gtsam.LevenbergMarquardtParams())
+        return optimiser.optimize(), optimiser.iterations()
+
+    cold, warm, (values, tries) = timed(solve, repeats)
+    poses = np.asarray(g.poses, np.float64).copy()
+    for k in nodes:
+        poses[k] = values.atPose3(k).matrix()
+    return {"solver": f"gtsam {importlib.metadata.version('gtsam')}",
+            **summary(cold, warm, g, poses, truth, int(tries))}
+
+
+def graphs(args: argparse.Namespace, dtype):
+    """(name, graph, truth, loop edges) of each graph asked for."""
+    for n in (int(v) for v in args.keyframes.split(",") if v):
+        g, truth, loops = sg.laps(n, dtype=dtype)
+        yield f"laps {n}", g, truth, loops
+    if args.sphere:
+        g, truth = sg.sphere(dtype=dtype)
+        yield "sphere2500", g, truth, int(np.sum(np.asarray(g.j) - np.asarray(g.i) > 1))
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Parse the arguments, time each size, print one line each and write the JSON."""
+    """Parse the arguments, time each graph, print one line per solver and write the JSON."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--keyframes", default="100,1000", help="comma-separated sizes")
+    parser.add_argument("--sphere", action="store_true", help="also the sphere2500-like graph")
+    parser.add_argument("--solvers", default="direct", help="ours: direct and/or cg")
+    parser.add_argument("--no-gtsam", action="store_true", help="skip the GTSAM peer")
+    parser.add_argument("--gradient", action="store_true", help="also time jax.grad (ours)")
+    parser.add_argument("--dtype", default="float32", choices=["float32", "float64"])
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--out", type=Path, default=Path("docs/map/pose_graph_time.json"))
+    parser.add_argument("--out", type=Path, default=Path("docs/map/pose_graph_scales.json"))
     args = parser.parse_args(argv)
+    jax.config.update("jax_enable_x64", args.dtype == "float64")
     rows = []
-    for n in (int(v) for v in args.keyframes.split(",")):
-        row = bench(n, args.repeats)
-        rows.append(row)
-        print(f"N={n:5d} edges={row['edges']:5d} loops={row['loop_edges']:3d} "
-              f"compile {row['compile_s']:.2f} s  warm mean {row['mean_ms']:.1f} ms "
-              f"median {row['median_ms']:.1f} ms  LM tries {row['iterations']:3d}  "
-              f"ATE {row['ate_start_m']:.3f} -> {row['ate_solution_m']:.3f} m", flush=True)
+    for name, g, truth, loops in graphs(args, np.dtype(args.dtype)):
+        head = {"graph": name, "nodes": len(truth), "edges": int(np.sum(np.asarray(g.valid))),
+                "loop_edges": loops, "node_slots": int(g.fixed.shape[0]),
+                "edge_slots": int(g.valid.shape[0]), "dtype": args.dtype,
+                "start_cost": round(sg.cost(g, g.poses), 3),
+                "ate_start_m": round(sg.ate(g.poses, truth), 5)}
+        solvers = args.solvers.split(",")
+        found = [ours(g, truth, s, args.repeats) for s in solvers]
+        found += [] if args.no_gtsam else [peer(g, truth, args.repeats)]
+        found += [gradient(g, s, args.repeats) for s in solvers if args.gradient]
+        for row in filter(None, found):
+            rows.append({**head, **row})
+            print(f"{name:11s} {row['solver']:15s} cold {row['cold_s']:6.2f} s  warm mean "
+                  f"{row['mean_ms']:8.1f} ms median {row['median_ms']:8.1f} ms", end="")
+            print("" if "cost" not in row else f"  tries {row['iterations']:3d}  cost "
+                  f"{row['cost']:.4f}  ATE {head['ate_start_m']:.3f} -> {row['ate_m']:.4f} m",
+                  flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"device": jax.devices()[0].device_kind, "sizes": rows},
-                                   indent=2) + "\n")
+    command = " ".join(["python scripts/pose_graph_time.py", *(argv or sys.argv[1:])])
+    args.out.write_text(json.dumps({"device": jax.devices()[0].device_kind, "command": command,
+                                    "rows": rows}, indent=2) + "\n")
 
 
 if __name__ == "__main__":

@@ -14,6 +14,7 @@ import pytest
 
 from edgevo_jax.solvers import (
     DAMPING,
+    POSE_GRAPH_DAMPING,
     WINDOW_DAMPING,
     LevenbergMarquardt,
     LMState,
@@ -96,6 +97,17 @@ def test_damping_policy_shrinks_grows_and_clips():
     # the window's policy differs in its floor only (solvers.py says why)
     assert WINDOW_DAMPING == dataclasses.replace(DAMPING, lam_min=1e-7)
     assert float(WINDOW_DAMPING.damping(jnp.asarray(1e-6, f32), True)) == pytest.approx(1e-7)
+
+
+def test_the_pose_graph_policy_retries_from_its_old_floor():
+    """Kept tries shrink lam to 1e-12 (Gauss-Newton); a rejected one grows it from 1e-6."""
+    lm, f64 = POSE_GRAPH_DAMPING, jnp.float64
+    with jax.enable_x64(True):
+        assert float(lm.damping(jnp.asarray(1e-11, f64), True)) == pytest.approx(1e-12)
+        assert float(lm.damping(jnp.asarray(1e-12, f64), True)) == pytest.approx(1e-12)
+        assert float(lm.damping(jnp.asarray(1e-12, f64), False)) == pytest.approx(1e-5)
+        assert float(lm.damping(jnp.asarray(1e-3, f64), False)) == pytest.approx(1e-2)
+    assert DAMPING.lam_retry == 0.0 and WINDOW_DAMPING.lam_retry == 0.0
 
 
 def test_rejected_tries_keep_the_point_and_grow_lam():

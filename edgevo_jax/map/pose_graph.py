@@ -15,22 +15,29 @@ Solve: ``solvers.POSE_GRAPH_DAMPING``'s Levenberg-Marquardt on one left twist pe
 equations with iteratively reweighted robust edges (weights rho'(chi2) from the current
 point) and the exact gradient, Marquardt-damped (H + lam diag H). With J_j = A the derivative
 of r in node j's twist and J_i = -A, A = (d log(E exp(d)) / dd at 0) Ad(T_j^-1), E = exp(r),
-the system is never formed: its products gather and scatter per-edge 6x6 blocks, and
-preconditioned conjugate gradients (6x6 block-Jacobi) solve it. Fixed nodes, and free nodes
-that no valid edge touches, do not move (zero rows and columns, identity on the diagonal).
+H is block-sparse: M = w A^T Omega A on the diagonal blocks of i and j, -M at (i, j) and
+(j, i). ``linear_solver="direct"`` (the default) factors it on the host (SciPy's sparse LU,
+``block_sparse.direct``: one factorisation a try, whatever the graph's shape);
+``linear_solver="cg"`` never forms it: preconditioned conjugate gradients (6x6
+block-Jacobi) multiply by it one edge's blocks at a time on the device, in iterations that
+grow with the graph. Fixed nodes, and free nodes that no valid edge touches, do not move
+(zero rows and columns, identity on the diagonal). Each connected part of the graph needs a
+fixed node: a part without one is held by the damping alone.
 
 Derivative (reverse mode, a ``custom_vjp``): the implicit function theorem at the optimum
 on the stationarity condition g = 0, g the cost's gradient in per-node left twists. g is
 analytic (an edge's error carries its own JVP: ``Pose.log`` and ``Pose.exp`` are never
 differentiated); its linearisation's transpose in the twists is the exact Hessian H
-(symmetric at the optimum), and H lambda = (the cotangent as left twists) is solved by the
-same PCG, plus eps max(diag H) for directions no edge constrains. The cotangents of
-``measured`` (tangents off SE(3) projected onto it) and ``information`` are
--(dg / dtheta)^T lambda. The start (``poses``, fixed nodes included) is a constant: its
+(symmetric at the optimum), and H lambda = (the cotangent as left twists) is solved, plus
+eps max(diag H) for directions no edge constrains: "direct" forms H's blocks (each edge's
+12x12 by forward mode, ``_hessian``) and factors it, "cg" runs the same PCG on H's products.
+The cotangents of ``measured`` (tangents off SE(3) projected onto it) and ``information``
+are -(dg / dtheta)^T lambda. The start (``poses``, fixed nodes included) is a constant: its
 derivative is zero.
 
 Everything is pure, jitted (``optimise``) and shape-static: padded nodes and edges are
-masked, so graphs of one padded size share one program, and ``jax.vmap`` batches graphs.
+masked, so graphs of one padded size share one program, and ``jax.vmap`` batches graphs
+("direct" factors a batch's graphs one after another on the host; "cg" stays on the device).
 """
 
 from __future__ import annotations
@@ -46,12 +53,14 @@ import numpy as np
 
 from ..geometry import Pose
 from ..solvers import POSE_GRAPH_DAMPING
+from .block_sparse import Blocks, block_jacobi, direct, pcg
 
 #: The Cauchy kernel's default scale c: sqrt of chi-square's 99 % quantile with 6 degrees of
 #: freedom (16.81), so a loop edge as far off as the worst 1 % of inliers keeps half its weight.
 ROBUST_SCALE = math.sqrt(16.81)
 
 _MAX_REJECTS = 6  # rejected tries in a row before LM stops (lam x 10 each)
+_RESOLVED = 64  # steps under 64 eps max|t| (the poses' rounding, eps the dtype's) end a solve
 
 
 class PoseGraph(NamedTuple):
@@ -251,17 +260,46 @@ def _scatter(e: _Edges, n: int, on_j: jnp.ndarray, on_i: jnp.ndarray) -> jnp.nda
     return jnp.zeros((n, *on_j.shape[1:]), on_j.dtype).at[e.j].add(on_j).at[e.i].add(on_i)
 
 
-def _system(x: Pose, measured: jnp.ndarray, information: jnp.ndarray, e: _Edges, c: float
-            ) -> _System:
-    r = _residual(x, measured, e)
-    A = jax.vmap(_jacobian)(r, _take(x, e.j))
+def _edge_terms(xi: Pose, xj: Pose, measured: jnp.ndarray, information: jnp.ndarray,
+                e: _Edges, c: float):
+    """Each edge's share at its nodes' poses xi, xj (E,): rho(chi2) (E,), its gradient in
+    node j's left twist w A^T Omega r (E, 6) (node i's is minus it) and M = w A^T Omega A
+    (E, 6, 6), the Gauss-Newton block (w = rho'(chi2), frozen)."""
+    r = jax.vmap(_edge_error)(xi, xj, Pose.from_matrix(measured, orthonormalise=None))
+    A = jax.vmap(_jacobian)(r, xj)
     _, rho, w = _robust(r, information, e, c)
     WA = w[:, None, None] * jnp.einsum("eab,ebc->eac", information, A)  # w Omega A
     ge = jnp.einsum("eba,eb->ea", WA, r)  # w A^T Omega r
-    M = jnp.einsum("eba,ebc->eac", A, WA)
+    return rho, ge, jnp.einsum("eba,ebc->eac", A, WA)
+
+
+def _system(x: Pose, measured: jnp.ndarray, information: jnp.ndarray, e: _Edges, c: float
+            ) -> _System:
+    rho, ge, M = _edge_terms(_take(x, e.i), _take(x, e.j), measured, information, e, c)
     n = x.t.shape[0]
     g = jnp.where(e.movable[:, None], _scatter(e, n, ge, -ge), 0.0)
     return _System(0.5 * jnp.sum(rho), g, M, _scatter(e, n, M, M))
+
+
+def _hessian(x: Pose, measured: jnp.ndarray, information: jnp.ndarray, e: _Edges, c: float
+             ) -> Blocks:
+    """The exact Hessian dg/dd (as ``Blocks``) of the left gradient g (``_System.g``) in the
+    nodes' left twists d (exp(d) x, ``_moved``), the weights rho' differentiated too: each
+    edge's (12, 12) derivative of its two gradient blocks in its two nodes' twists, by 12
+    forward-mode products over all edges at once."""
+    xi, xj = _take(x, e.i), _take(x, e.j)
+
+    def gradients(d):  # (E, 12) -> (E, 12): edge e's gradient blocks on nodes i and j
+        _, ge, _ = _edge_terms(_moved(xi, d[:, :6]), _moved(xj, d[:, 6:]), measured,
+                               information, e, c)
+        return jnp.concatenate([-ge, ge], axis=1)
+
+    zero = jnp.zeros((e.i.shape[0], 12), x.t.dtype)
+    basis = jnp.broadcast_to(jnp.eye(12, dtype=x.t.dtype)[:, None, :], (12, *zero.shape))
+    J = jnp.moveaxis(jax.vmap(lambda t: jax.jvp(gradients, (zero,), (t,))[1])(basis), 0, -1)
+    D = jnp.zeros((x.t.shape[0], 6, 6), J.dtype).at[e.i].add(J[:, :6, :6]).at[e.j].add(
+        J[:, 6:, 6:])
+    return Blocks(D, J[:, :6, 6:], J[:, 6:, :6], e.i, e.j, e.valid, e.movable)
 
 
 def _settles(old: _System, new: _System) -> jnp.ndarray:
@@ -272,48 +310,23 @@ def _settles(old: _System, new: _System) -> jnp.ndarray:
     return (new.cost < old.cost) | shrinks
 
 
-def _block_solve(blocks: jnp.ndarray, movable: jnp.ndarray):
-    """v -> blocks^-1 v per node (the block-Jacobi preconditioner), identity off ``movable``."""
-    eye = jnp.eye(6, dtype=blocks.dtype)
-    inv = jnp.linalg.inv(jnp.where(movable[:, None, None], blocks, eye))
-    return lambda v: jnp.einsum("nab,nb->na", inv, v)
-
-
-def _pcg(op, b: jnp.ndarray, precond, tol: float, maxiter: int) -> jnp.ndarray:
-    """x with op(x) = b (op symmetric positive definite) by preconditioned conjugate gradients
-    from 0, until |b - op(x)| <= tol |b| or after ``maxiter`` iterations."""
-    bound = (tol * tol) * jnp.sum(b * b)
-
-    def cond(c):
-        return (c[0] < maxiter) & (jnp.sum(c[2] * c[2]) > bound)
-
-    def body(c):
-        k, x, r, p, rz = c
-        q = op(p)
-        alpha = rz / jnp.sum(p * q)
-        x, r = x + alpha * p, r - alpha * q
-        z = precond(r)
-        rz_new = jnp.sum(r * z)
-        return k + 1, x, r, z + (rz_new / rz) * p, rz_new
-
-    z = precond(b)
-    init = (jnp.asarray(0, jnp.int32), jnp.zeros_like(b), b, z, jnp.sum(b * z))
-    return jax.lax.while_loop(cond, body, init)[1]
-
-
-def _damped_step(s: _System, lam: jnp.ndarray, e: _Edges, cg_iterations: int, cg_tol: float
-                 ) -> jnp.ndarray:
-    """The LM step (N, 6): (H + lam diag H) delta = -g on movable nodes by PCG, 0 elsewhere."""
+def _damped_step(s: _System, lam: jnp.ndarray, e: _Edges, spec: tuple) -> jnp.ndarray:
+    """The LM step (N, 6): (H + lam diag H) delta = -g on movable nodes, 0 elsewhere, by the
+    sparse LU (spec[1] "direct") or PCG (spec[1] "cg", spec[2:]: iterations, tolerance)."""
     mov = e.movable[:, None]
     diag = jnp.diagonal(s.D, axis1=-2, axis2=-1)
+    damped = s.D + lam * jax.vmap(jnp.diag)(diag)
+    b = jnp.where(mov, -s.g, 0.0)
+    if spec[1] == "direct":  # H's edge blocks: -M at (i, j) and (j, i)
+        return jnp.where(mov, direct(Blocks(damped, -s.M, -s.M, e.i, e.j, e.valid, e.movable),
+                                     b), 0.0)
 
     def op(v):  # H v: one gather, 6x6 blocks per edge, one scatter
         v = jnp.where(mov, v, 0.0)
         z = jnp.einsum("eab,eb->ea", s.M, v[e.j] - v[e.i])
         return jnp.where(mov, _scatter(e, v.shape[0], z, -z) + lam * diag * v, v)
 
-    precond = _block_solve(s.D + lam * jax.vmap(jnp.diag)(diag), e.movable)
-    delta = _pcg(op, jnp.where(mov, -s.g, 0.0), precond, cg_tol, cg_iterations)
+    delta = pcg(op, b, block_jacobi(damped, e.movable), spec[3], spec[2])
     return jnp.where(mov, delta, 0.0)
 
 
@@ -326,10 +339,10 @@ def _moved(x: Pose, d: jnp.ndarray) -> Pose:
 
 
 @partial(jax.custom_vjp, nondiff_argnums=(0,))
-def _implicit(spec: tuple[float, int, float], R, t, measured, information, e: _Edges, D):
+def _implicit(spec: tuple, R, t, measured, information, e: _Edges, D):
     """The optimum (R, t) unchanged; its VJP is the implicit function theorem (module doc).
-    spec: (robust_scale, cg_iterations, cg_tol), static; D: the Gauss-Newton diagonal blocks
-    at the optimum (the adjoint solve's preconditioner)."""
+    spec: (robust_scale, linear_solver, cg_iterations, cg_tol), static; D: the Gauss-Newton
+    diagonal blocks at the optimum (the Tikhonov term's scale, PCG's preconditioner)."""
     del spec, measured, information, e, D
     return R, t
 
@@ -339,7 +352,7 @@ def _implicit_fwd(spec, R, t, measured, information, e, D):
 
 
 def _implicit_bwd(spec, res, ct):
-    (c, cg_iterations, cg_tol), (R, t, measured, information, e, D) = spec, res
+    (c, solver, cg_iterations, cg_tol), (R, t, measured, information, e, D) = spec, res
     x, mov = Pose(R, t), e.movable[:, None]
     zero = jnp.zeros(t.shape[:1] + (6,), t.dtype)
     _, pull = jax.vjp(lambda d: _moved(x, d), zero)
@@ -352,13 +365,17 @@ def _implicit_bwd(spec, res, ct):
     # one linearisation for both: its transpose in d is the Hessian (symmetric at the optimum)
     _, transpose = jax.vjp(stationarity, zero, measured, information)
     tikhonov = jnp.finfo(t.dtype).eps * jnp.max(jnp.abs(jnp.diagonal(D, axis1=-2, axis2=-1)))
+    b = jnp.where(mov, ct_xi, 0.0)
+    if solver == "direct":  # the same Hessian, formed: its blocks by forward mode
+        H = _hessian(x, measured, information, e, c)
+        H = H._replace(D=H.D + tikhonov * jnp.eye(6, dtype=t.dtype)).transpose()
+        adjoint = direct(H, b)
+    else:
+        def op(v):
+            v = jnp.where(mov, v, 0.0)
+            return jnp.where(mov, transpose(v)[0] + tikhonov * v, v)
 
-    def op(v):
-        v = jnp.where(mov, v, 0.0)
-        return jnp.where(mov, transpose(v)[0] + tikhonov * v, v)
-
-    adjoint = _pcg(op, jnp.where(mov, ct_xi, 0.0), _block_solve(D, e.movable), cg_tol,
-                   cg_iterations)
+        adjoint = pcg(op, b, block_jacobi(D, e.movable), cg_tol, cg_iterations)
     _, ct_m, ct_o = transpose(-jnp.where(mov, adjoint, 0.0))
     return jnp.zeros_like(R), jnp.zeros_like(t), ct_m, ct_o, None, None
 
@@ -366,14 +383,15 @@ def _implicit_bwd(spec, res, ct):
 _implicit.defvjp(_implicit_fwd, _implicit_bwd)
 
 
-@partial(jax.jit, static_argnames=("robust_scale", "iterations", "step_tol", "cg_iterations",
-                                   "cg_tol"))
+@partial(jax.jit, static_argnames=("robust_scale", "iterations", "step_tol", "linear_solver",
+                                   "cg_iterations", "cg_tol"))
 def optimise(
     graph: PoseGraph,
     *,
     robust_scale: float = ROBUST_SCALE,
     iterations: int = 30,
     step_tol: float = 1e-5,
+    linear_solver: str = "direct",
     cg_iterations: int = 1000,
     cg_tol: float = 1e-3,
 ) -> Solution:
@@ -382,16 +400,23 @@ def optimise(
     robust_scale: the Cauchy scale c on robust edges (default sqrt(16.81): chi-square's 99 %
     quantile with 6 degrees of freedom, so a loop edge as far off as the worst 1 % of inliers
     keeps half its weight); iterations: the LM tries at most; step_tol: stop once a try's
-    largest twist component (m or rad) is below it (or after 6 rejected tries in a row);
-    cg_iterations, cg_tol: the conjugate-gradient budget and relative residual of each linear
-    solve (the LM step and the derivative's adjoint). Jitted, vmap-able over graphs of one
-    shape; reverse-differentiable in ``measured`` and ``information`` (implicit, module doc),
-    with a zero derivative in ``poses``."""
+    largest twist component (m or rad) is below it, or below 64 eps max|t| of the start's
+    positions (what the dtype resolves there), or after 6 rejected tries in a row;
+    linear_solver: how each linear system (the LM step, the derivative's adjoint) is solved:
+    "direct", a sparse LU on the host (``block_sparse.direct``: exact, graphs of a vmapped
+    batch one after another), or "cg", preconditioned conjugate gradients on the device
+    (``block_sparse.pcg``: no host round trip; its iterations grow with the graph);
+    cg_iterations, cg_tol: the conjugate gradients' budget and relative residual ("cg" only).
+    Jitted, vmap-able over graphs of one shape; reverse-differentiable in ``measured`` and
+    ``information`` (implicit, module doc), with a zero derivative in ``poses``."""
+    if linear_solver not in ("direct", "cg"):
+        raise ValueError(f"linear_solver must be 'direct' or 'cg', not {linear_solver!r}")
     start = jax.lax.stop_gradient(graph.poses)
     measured = jax.lax.stop_gradient(graph.measured)
     information = jax.lax.stop_gradient(graph.information)
     e = _edges(graph)
     c = robust_scale
+    spec = (float(c), linear_solver, cg_iterations, cg_tol)
 
     def evaluate(x, _old=None):
         return _system(x, measured, information, e, c)
@@ -399,7 +424,7 @@ def optimise(
     def body(carry):
         k, state = carry
         state, _ = POSE_GRAPH_DAMPING.step(
-            state, solve=lambda x, s, lam: _damped_step(s, lam, e, cg_iterations, cg_tol),
+            state, solve=lambda x, s, lam: _damped_step(s, lam, e, spec),
             apply=jax.vmap(Pose.retract), evaluate=evaluate, accept=_settles,
             norm=lambda delta: jnp.max(jnp.abs(delta)))  # size-independent
         return k + 1, state
@@ -407,18 +432,19 @@ def optimise(
     def cond(carry):
         k, state = carry
         return (k == 0) | ((k <= iterations) & ((k == 1) |
-                           POSE_GRAPH_DAMPING.continues(state, step_tol, _MAX_REJECTS)))
+                           POSE_GRAPH_DAMPING.continues(state, tol, _MAX_REJECTS)))
 
     # pass 0 evaluates the start (a zero step, kept against an infinite cost, lam back to
     # lam_init): the system is traced once, which halves the compile time
     x0 = jax.vmap(Pose.from_matrix)(start)
+    # a step the poses' own rounding drowns ends the solve too (float32 at 50 m: 0.4 mm)
+    tol = jnp.maximum(step_tol, _RESOLVED * jnp.finfo(start.dtype).eps * jnp.max(jnp.abs(x0.t)))
     blank = jax.tree.map(jnp.zeros_like, jax.eval_shape(evaluate, x0))
     blank = blank._replace(cost=jnp.asarray(jnp.inf, start.dtype),
                            D=jnp.broadcast_to(jnp.eye(6, dtype=start.dtype), blank.D.shape))
     lam = POSE_GRAPH_DAMPING.lam_init / POSE_GRAPH_DAMPING.shrink
     state = POSE_GRAPH_DAMPING.init(x0, blank, start.dtype, lam)
     passes, state = jax.lax.while_loop(cond, body, (jnp.asarray(0, jnp.int32), state))
-    spec = (float(c), cg_iterations, cg_tol)
     x = Pose(*_implicit(spec, *state.x, graph.measured, graph.information, e, state.system.D))
     poses = jnp.where(e.movable[:, None, None], x.as_matrix(), start)
     chi2, rho, weight = _robust(_residual(x, graph.measured, e), graph.information, e, c)

@@ -1,11 +1,14 @@
 """The pose graph (``backend.pose_graph``): it recovers consistent graphs, closes a drifting
 loop, shrugs off a false loop, its edge Jacobians match finite differences and jax.jacfwd
 (at exactly zero residual too), its implicit derivative matches finite differences of
-re-running it, padding and vmap change nothing, and fixed nodes stay put. float64
-(``jax.enable_x64``) unless a test says otherwise; every float64 run shares one padded shape
+re-running it, padding and vmap change nothing, and fixed nodes stay put; the direct solve
+(the default) and the conjugate gradients agree, and 1,000 keyframes converge. float64
+(``jax.enable_x64``) unless a test says otherwise; most float64 runs share one padded shape
 (64 nodes, 64 edges) and one set of options, so they share one compiled program."""
 
 from __future__ import annotations
+
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -17,6 +20,8 @@ from hypothesis import strategies as st
 from edgevo_jax.geometry import Pose, exp_np, inverse_np, log_np
 from edgevo_jax.map import pose_graph as pg
 from edgevo_jax.map.pose_graph import PoseGraph, graph, optimise
+from edgevo_jax.map.synthetic_graphs import cost as synthetic_cost
+from edgevo_jax.map.synthetic_graphs import laps
 
 #: converged to float64 precision (the derivative is checked against finite differences)
 TIGHT = dict(iterations=60, step_tol=1e-12, cg_iterations=400, cg_tol=1e-12)
@@ -315,16 +320,18 @@ def test_exactly_zero_residuals_have_finite_jacobians_and_derivatives():
 # -- 5: the implicit derivative ------------------------------------------------------------
 
 
-def probe(poses, g: PoseGraph, u, xi, k, s_m, s_o):
+def probe(poses, g: PoseGraph, u, xi, k, s_m, s_o, solver="direct"):
     """sum(u * optimised poses) with edge k's measurement moved by exp(s_m xi) on the right
-    and its information scaled by 1 + s_o."""
+    and its information scaled by 1 + s_o (the LM's steps and the adjoint by ``solver``)."""
     measured = g.measured.at[k].set(g.measured[k] @ Pose.exp(s_m * xi).as_matrix())
     information = g.information.at[k].multiply(1.0 + s_o)
-    sol = optimise(g._replace(poses=poses, measured=measured, information=information), **TIGHT)
+    sol = optimise(g._replace(poses=poses, measured=measured, information=information),
+                   linear_solver=solver, **TIGHT)
     return jnp.sum(u * sol.poses)
 
 
 probe_grad = jax.jit(jax.grad(probe, argnums=(0, 5, 6)))
+probe_grad_cg = jax.jit(jax.grad(partial(probe, solver="cg"), argnums=(0, 5, 6)))
 
 
 @given(seed=seeds, noise=st.sampled_from([0.0, 0.05]), on_robust=st.booleans())
@@ -361,9 +368,11 @@ def run_probe(g: PoseGraph, u, xi, k, s_m, s_o) -> float:
 # -- 6: padding and batching ---------------------------------------------------------------
 
 
-def test_padding_and_vmap_change_nothing():
+@pytest.mark.parametrize("solver", ["direct", "cg"])
+def test_padding_and_vmap_change_nothing(solver):
     """Two graphs padded further (80 nodes, 100 edges) and solved in one vmapped call give
-    the runs of each alone at the default padding."""
+    the runs of each alone at the default padding, by either linear solver (the host's LU
+    one graph after another, the device's PCG batched)."""
     with jax.enable_x64(True):
         rng = np.random.default_rng(11)
         truth = circle(10, 1.5)
@@ -376,12 +385,12 @@ def test_padding_and_vmap_change_nothing():
             return [(a, b, relative(truth, a, b, random_twist(r, 0.02, 0.01)), spd(r, 0.01, 0.01),
                      a == 9) for a, b in pairs]
 
-        alone = [optimise(graph(start, edges(s), fixed=[0], dtype=np.float64), **TIGHT)
-                 for s in (1, 2)]
+        alone = [optimise(graph(start, edges(s), fixed=[0], dtype=np.float64),
+                          linear_solver=solver, **TIGHT) for s in (1, 2)]
         assert float(alone[0].cost) != float(alone[1].cost)
         padded = [graph(start, edges(s), fixed=[0], nodes=80, edge_slots=100, dtype=np.float64)
                   for s in (1, 2)]
-        both = jax.vmap(lambda g: optimise(g, **TIGHT))(
+        both = jax.vmap(lambda g: optimise(g, linear_solver=solver, **TIGHT))(
             jax.tree.map(lambda *a: jnp.stack(a), *padded))
         for b, s in enumerate(alone):
             np.testing.assert_allclose(np.asarray(both.poses[b, :64]), np.asarray(s.poses),
@@ -392,3 +401,43 @@ def test_padding_and_vmap_change_nothing():
                                        atol=1e-12)
             np.testing.assert_array_equal(np.asarray(both.chi2[b, 64:]), 0.0)
             np.testing.assert_allclose(float(both.cost[b]), float(s.cost), rtol=1e-12)
+
+
+# -- 8: the direct solve against the conjugate gradients, and at scale -----------------------
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_the_direct_solve_and_the_conjugate_gradients_agree(seed):
+    """The same optimum, and the same implicit derivative, by either linear solver."""
+    with jax.enable_x64(True):
+        g, truth, robust = random_graph(seed, 0.05)
+        direct, cg = (optimise(g, linear_solver=s, **TIGHT) for s in ("direct", "cg"))
+        np.testing.assert_allclose(np.asarray(direct.poses), np.asarray(cg.poses), atol=1e-9)
+        np.testing.assert_allclose(float(direct.cost), float(cg.cost), rtol=1e-12)
+        np.testing.assert_allclose(np.asarray(direct.weight), np.asarray(cg.weight), atol=1e-9)
+        rng = np.random.default_rng(seed)
+        u = np.zeros((64, 4, 4))
+        u[:len(truth)] = rng.normal(size=(len(truth), 4, 4))
+        args = (jnp.asarray(u), jnp.asarray(random_twist(rng, 0.3, 0.3)))
+        for k in (0, robust):
+            ours = probe_grad(g.poses, g, *args, k, 0.0, 0.0)
+            ref = probe_grad_cg(g.poses, g, *args, k, 0.0, 0.0)
+            for a, b in zip(ours[1:], ref[1:], strict=True):
+                np.testing.assert_allclose(float(a), float(b), rtol=1e-7, atol=1e-10)
+
+
+def test_a_thousand_keyframes_converge_in_float32_the_same_bits_every_call():
+    """The laps of 1,000 keyframes (scripts/pose_graph_time.py's) with the defaults: well
+    inside the LM budget, at the float64 optimum's cost, ATE down, and bit for bit again."""
+    g, truth, _ = laps(1000)
+    sol = optimise(g)
+    assert int(sol.iterations) < 15  # of 30
+    again = optimise(g)
+    for a, b in zip(sol, again, strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    with jax.enable_x64(True):
+        ref = optimise(laps(1000, dtype=np.float64)[0], iterations=60, step_tol=1e-10)
+        assert int(ref.iterations) < 60
+        best = synthetic_cost(g, ref.poses)
+    assert synthetic_cost(g, sol.poses) < best * (1 + 1e-6)
+    assert position_error(sol.poses, truth) < 0.3 * position_error(g.poses, truth)
