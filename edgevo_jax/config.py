@@ -55,7 +55,7 @@ class Config:
     Algorithm 1), ``all``, ``random`` or ``greedy`` (stochastic greedy over all edges)."""
     num_edges: int = 512
     """[edges] Edges tracked per keyframe with spg / random / greedy. Why: keeps the solve well
-    under the preprocessing it overlaps on a 2-core CPU (``scripts/ablation_selection.py``)."""
+    under the preprocessing it overlaps on a 2-core CPU (``docs/ablation``)."""
     cell_size: int = 4
     """[px] Side of spg's partition grid. Why: many more non-empty partitions than the budget
     even on weakly textured frames; coarser grids were worse on fr3_teddy

@@ -58,7 +58,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     co = kinds.add_parser(
         "configs", help="accuracy vs time and edges used across configurations",
         description="Accuracy vs time per frame, and edges used vs accuracy, across "
-                    "configurations, from scripts/ablation_selection.py JSON, "
+                    "configurations, from the selection ablation's JSON (docs/ablation), "
                     "scripts/bench.py JSON, or `edgevo run --stats` JSON files.")
     co.add_argument("results", type=Path, nargs="+",
                     help="ablation.json, bench.json or run-statistics JSON file(s)")

@@ -13,7 +13,7 @@ The ``edgevo plot`` command (``edgevo_jax.cli``) makes each figure with one comm
 - :func:`plot_selection_overlay`: selected edges over the gray image, one panel per selection
   (EdgeVO Fig. 5: partition greedy spreads the edges, plain greedy clusters them).
 - :func:`plot_ablation`: edges used vs ATE (EdgeVO Fig. 6) and time per frame vs ATE
-  (Fig. 1d), from the records that ``scripts/ablation_selection.py`` aggregates.
+  (Fig. 1d), from the records the selection ablation aggregates (docs/ablation).
 - :func:`plot_benchmark`: time per frame vs ATE per method, from ``scripts/bench.py`` rows.
 - :func:`plot_frame_rates`: ATE and silently diverged frames against the frame step, from
   ``scripts/robustness_bench.py``'s aggregates.

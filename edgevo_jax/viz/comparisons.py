@@ -316,7 +316,7 @@ def _stats_records(runs: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
 def read_results(paths: Sequence[str | os.PathLike[str]]) -> tuple[str, list[dict[str, Any]]]:
     """Read configuration results for :func:`plot_ablation` or :func:`plot_benchmark`.
 
-    Each path is one of: ``scripts/ablation_selection.py``'s ``ablation.json`` (its
+    Each path is one of: the selection ablation's ``ablation.json`` (docs/ablation) (its
     ``aggregates``), ``scripts/bench.py``'s JSON (its ``results``), or ``edgevo run --stats``
     JSON (one run: several of them, e.g. one per seed and budget, are aggregated per
     (sequence, selection, num_edges)). Returns ``("ablation", records)`` (the records
@@ -345,7 +345,7 @@ def read_results(paths: Sequence[str | os.PathLike[str]]) -> tuple[str, list[dic
             stats.append(data)
         else:
             raise ValueError(
-                f"{p}: not a results file: expected scripts/ablation_selection.py JSON (key "
+                f"{p}: not a results file: expected the selection ablation's JSON (key "
                 "'aggregates'), scripts/bench.py JSON (key 'results') or `edgevo run --stats` "
                 "JSON (keys 'sequence', 'ms_per_frame', 'config')")
     if bench and (ablation or stats):
