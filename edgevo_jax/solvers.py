@@ -139,6 +139,7 @@ WINDOW_DAMPING = LevenbergMarquardt(lam_min=1e-7)
 #: The pose graph's (``map.pose_graph``): floors >= 1e-4 leave a loop's drift half spread,
 #: and 1e-6 (the floor before the direct solve) held a 2,500-pose sphere to a linear rate of
 #: 0.68 a try (lam diag H outweighed its softest modes): at 1e-12 the kept tries are
-#: Gauss-Newton's (quadratic). A rejected try retries from at least 1e-6 (1e-5, 1e-4, ...),
-#: so rejects climb as they did from the old floor.
-POSE_GRAPH_DAMPING = LevenbergMarquardt(lam_init=1e-4, lam_min=1e-12, lam_retry=1e-6)
+#: Gauss-Newton's (quadratic), from the first (a first lam of 1e-4 cost 2-3 tries on long
+#: chains, whose softest modes are ~N^-2 of the diagonal). A rejected try retries from at
+#: least 1e-6 (1e-5, 1e-4, ...), so rejects climb as they did from the old floor.
+POSE_GRAPH_DAMPING = LevenbergMarquardt(lam_init=1e-12, lam_min=1e-12, lam_retry=1e-6)

@@ -7,10 +7,15 @@ Only the ``movable`` nodes' rows and columns count: the system is solved on them
 off ``movable`` keeps its right-hand side (identity rows and columns: the caller's zeros
 stay zeros). Invalid (padding) edges are ignored.
 
-- ``direct``: SciPy's sparse LU (SuperLU, a fill-reducing minimum-degree ordering of
-  H + H^T, diagonal pivots preferred) of the movable part, on the host in float64 through
+- ``direct``: a sparse factorisation of the movable part on the host in float64, through
   ``jax.pure_callback``; ``jax.vmap`` solves the graphs of a batch one after the other.
-  Deterministic: SuperLU is sequential, so the same inputs give the same bits.
+  A symmetric positive definite H (``symmetric=True``: the LM's damped systems) by
+  CHOLMOD's supernodal Cholesky (CVXOPT's binding) of 0.5 (H + H^T), its pattern analysed
+  once (fill-reducing ordering, supernodes; the last 8 patterns are kept) and refactored
+  numerically per system, each solution checked by its residual; otherwise, or where H is
+  not positive definite, SciPy's sparse LU (SuperLU, a minimum-degree ordering of
+  H + H^T, diagonal pivots preferred). Deterministic: the same inputs give the same bits,
+  call after call (tests/map/test_block_sparse.py).
 - ``pcg``: preconditioned conjugate gradients of an operator (symmetric positive definite),
   on the device, with the 6x6 block-Jacobi preconditioner ``block_jacobi``: no host round
   trip, but its iterations grow with the graph (a chain of N nodes asks O(N)).
@@ -18,6 +23,9 @@ stay zeros). Invalid (padding) edges are ignored.
 
 from __future__ import annotations
 
+import hashlib
+import threading
+from collections import OrderedDict
 from functools import partial
 from typing import NamedTuple
 
@@ -58,30 +66,137 @@ def _csc(D, U, L, i, j, valid, movable):
     blocks = np.concatenate([D[nodes], U[keep], L[keep]]).astype(np.float64)
     brow = np.concatenate([np.arange(m), bi, bj])
     bcol = np.concatenate([np.arange(m), bj, bi])
-    a = np.arange(6)
-    rows = np.broadcast_to(6 * brow[:, None, None] + a[None, :, None], blocks.shape)
-    cols = np.broadcast_to(6 * bcol[:, None, None] + a[None, None, :], blocks.shape)
+    rows, cols = _entries(brow, bcol)
     H = scipy.sparse.coo_matrix((blocks.ravel(), (rows.ravel(), cols.ravel())),
                                 shape=(6 * m, 6 * m)).tocsc()  # duplicates summed
     return H, nodes
 
 
-def _host_solve(D, U, L, i, j, valid, movable, b):
-    """x (N, 6) with H x = b on the movable nodes, x = b elsewhere (module doc), by SuperLU
-    in float64 (x of b's dtype); NaN on the movable nodes where H's movable part is
-    exactly singular. Host arrays in and out."""
+def _entries(brow: np.ndarray, bcol: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The scalar rows and columns (K, 6, 6) of K 6x6 blocks at block rows and columns (K,)."""
+    a = np.arange(6)
+    shape = (brow.size, 6, 6)
+    return (np.broadcast_to(6 * brow[:, None, None] + a[None, :, None], shape),
+            np.broadcast_to(6 * bcol[:, None, None] + a[None, None, :], shape))
+
+
+class _Analysis:
+    """One sparsity pattern's symbolic work, done once: the CSC structure (6m, 6m) of the
+    lower triangle of the movable part, where each scalar of D's movable blocks and the kept
+    edges' U and L lands in it (``dest``: entry (r, c) of H adds ``weight`` x its value to
+    (max(r, c), min(r, c)), 0.5 off the diagonal: 0.5 (H + H^T)), and CHOLMOD's symbolic
+    factorisation of it (its fill-reducing ordering, supernodes), refactored numerically
+    per system under ``lock``."""
+
+    def __init__(self, i, j, valid, movable):
+        from cvxopt import cholmod, matrix, spmatrix
+
+        self.nodes = np.flatnonzero(movable)
+        m, n = self.nodes.size, 6 * self.nodes.size
+        slot = np.cumsum(movable) - 1
+        self.keep = valid & movable[i] & movable[j]
+        bi, bj = slot[i[self.keep]], slot[j[self.keep]]
+        rows, cols = _entries(np.concatenate([np.arange(m), bi, bj]),
+                              np.concatenate([np.arange(m), bj, bi]))
+        rows, cols = rows.ravel(), cols.ravel()
+        lower = np.maximum(cols, rows) + n * np.minimum(cols, rows)  # column-major: CSC order
+        unique, self.dest = np.unique(lower, return_inverse=True)
+        self.weight = np.where(rows == cols, 1.0, 0.5)
+        self.indices = (unique % n).astype(np.int32)
+        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(unique // n, minlength=n))]
+                                     ).astype(np.int32)
+        self.shape = (n, n)
+        self.matrix = spmatrix(1.0, matrix(self.indices.astype(np.int64)),
+                               matrix((unique // n).astype(np.int64)), self.shape)
+        self.factor = cholmod.symbolic(self.matrix)  # its lower triangle (uplo "L")
+        self.lock = threading.Lock()
+
+    def lower_matrix(self, D, U, L):
+        """The lower triangle (CSC, float64) of 0.5 (H + H^T)."""
+        import scipy.sparse
+
+        values = np.concatenate([D[self.nodes].ravel(), U[self.keep].ravel(),
+                                 L[self.keep].ravel()]).astype(np.float64)
+        data = np.bincount(self.dest, weights=values * self.weight, minlength=self.indices.size)
+        return scipy.sparse.csc_matrix((data, self.indices, self.indptr), shape=self.shape)
+
+    def solve(self, lower, rhs: np.ndarray) -> np.ndarray | None:
+        """x with 0.5 (H + H^T) x = rhs from its ``lower`` triangle by CHOLMOD's Cholesky,
+        or None where it is not positive definite."""
+        from cvxopt import cholmod, matrix
+
+        x = matrix(rhs)
+        with self.lock:
+            self.matrix.V = matrix(lower.data)
+            try:
+                cholmod.numeric(self.matrix, self.factor)
+            except ArithmeticError:
+                return None
+            cholmod.solve(self.factor, x)
+        return np.array(x).ravel()
+
+
+_ANALYSES: OrderedDict[bytes, _Analysis] = OrderedDict()
+_ANALYSES_LOCK = threading.Lock()
+_ANALYSES_KEPT = 8  # patterns remembered (a solve's tries share one; the map's next differs)
+
+
+def _analysis(i, j, valid, movable) -> _Analysis:
+    """The pattern's ``_Analysis``, from the cache (the last ``_ANALYSES_KEPT`` patterns)."""
+    key = hashlib.blake2b(b"".join(np.ascontiguousarray(a).tobytes() for a in
+                                   (i, j, valid, movable)), digest_size=16).digest()
+    with _ANALYSES_LOCK:
+        found = _ANALYSES.get(key)
+        if found is not None:
+            _ANALYSES.move_to_end(key)
+            return found
+    found = _Analysis(i, j, valid, movable)
+    with _ANALYSES_LOCK:
+        _ANALYSES[key] = found
+        while len(_ANALYSES) > _ANALYSES_KEPT:
+            _ANALYSES.popitem(last=False)
+    return found
+
+
+def _cholesky_solve(D, U, L, i, j, valid, movable, b) -> np.ndarray | None:
+    """x on the movable nodes (m, 6) of the symmetrised H x = b by CHOLMOD (module doc), or
+    None where H is not positive definite or the solution does not check out (a residual
+    over 1e-9 of |H| |x| + |b|, max norms)."""
+    a = _analysis(i, j, valid, movable)
+    lower = a.lower_matrix(D, U, L)
+    rhs = b[a.nodes].astype(np.float64).ravel()
+    x = a.solve(lower, rhs)
+    if x is None or not np.all(np.isfinite(x)):
+        return None
+    residual = lower @ x + lower.T @ x - lower.diagonal() * x - rhs
+    scale = 2 * abs(lower).sum(axis=1).max() * np.abs(x).max() + np.abs(rhs).max()
+    return x.reshape(-1, 6) if np.abs(residual).max() <= 1e-9 * scale else None
+
+
+def _host_solve(D, U, L, i, j, valid, movable, b, symmetric=False):
+    """x (N, 6) with H x = b on the movable nodes, x = b elsewhere (module doc), in float64
+    (x of b's dtype): symmetric, by CHOLMOD's Cholesky of 0.5 (H + H^T), else (or where
+    that fails: not positive definite) by SuperLU; NaN on the movable nodes where H's
+    movable part is exactly singular. Host arrays in and out."""
     import scipy.sparse.linalg
 
     x = np.array(b, copy=True)
     nodes = np.flatnonzero(movable)
-    if nodes.size and b[nodes].any():  # (a zero right-hand side: x = 0, nothing to factor)
-        H, nodes = _csc(D, U, L, i, j, valid, movable)
-        try:
-            lu = scipy.sparse.linalg.splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                                          options=dict(SymmetricMode=True))
-            x[nodes] = lu.solve(b[nodes].astype(np.float64).ravel()).reshape(-1, 6)
-        except RuntimeError:  # exactly singular: no solution to give
-            x[nodes] = np.nan
+    if not (nodes.size and b[nodes].any()):  # a zero right-hand side: x = 0, nothing to factor
+        return x
+    found = _cholesky_solve(D, U, L, i, j, valid, movable, b) if symmetric else None
+    if found is not None:
+        x[nodes] = found
+        return x
+    H, nodes = _csc(D, U, L, i, j, valid, movable)
+    if symmetric:
+        H = 0.5 * (H + H.T)
+    try:
+        lu = scipy.sparse.linalg.splu(H.tocsc(), permc_spec="MMD_AT_PLUS_A",
+                                      diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+        x[nodes] = lu.solve(b[nodes].astype(np.float64).ravel()).reshape(-1, 6)
+    except RuntimeError:  # exactly singular: no solution to give
+        x[nodes] = np.nan
     return x
 
 
@@ -91,24 +206,25 @@ def _bits(a: jnp.ndarray) -> jnp.ndarray:
     return jax.lax.bitcast_convert_type(a, jnp.uint32)
 
 
-def _from_bits(dtype: np.dtype, *args):
+def _from_bits(dtype: np.dtype, symmetric: bool, *args):
     """``_host_solve`` on the floats that ``_bits`` encoded (D, U, L and b), its x as bits."""
     D, U, L, i, j, valid, movable, b = (np.asarray(a) for a in args)
     D, U, L, b = (np.ascontiguousarray(a).view(dtype).reshape(a.shape[:-1] if
                   dtype == np.float64 else a.shape) for a in (D, U, L, b))
-    x = _host_solve(D, U, L, i, j, valid, movable, b)
+    x = _host_solve(D, U, L, i, j, valid, movable, b, symmetric)
     return x.astype(dtype).view(np.uint32).reshape(args[-1].shape)
 
 
-def direct(H: Blocks, b: jnp.ndarray) -> jnp.ndarray:
-    """x (N, 6) with H x = b on H's movable nodes (b's rows elsewhere), by a sparse LU on the
-    host (module doc); of b's dtype (float32 or float64, H's too). Traceable (a
-    ``jax.pure_callback``), vmap-able (one graph after another); not differentiable (callers
-    give their own derivative)."""
+def direct(H: Blocks, b: jnp.ndarray, *, symmetric: bool = False) -> jnp.ndarray:
+    """x (N, 6) with H x = b on H's movable nodes (b's rows elsewhere), by a sparse
+    factorisation on the host (module doc); of b's dtype (float32 or float64, H's too).
+    symmetric: H is symmetric up to rounding (0.5 (H + H^T) is solved, by LDL^T), else LU.
+    Traceable (a ``jax.pure_callback``), vmap-able (one graph after another); not
+    differentiable (callers give their own derivative)."""
     bits = _bits(b)
     args = (*(_bits(a) for a in H[:3]), *H[3:], bits)
     out = jax.ShapeDtypeStruct(bits.shape, bits.dtype)
-    x = jax.pure_callback(partial(_from_bits, np.dtype(b.dtype)), out, *args,
+    x = jax.pure_callback(partial(_from_bits, np.dtype(b.dtype), symmetric), out, *args,
                           vmap_method="sequential")
     return jax.lax.bitcast_convert_type(x, b.dtype)
 

@@ -171,6 +171,13 @@ def _hat(a: jnp.ndarray) -> jnp.ndarray:
     return jnp.cross(a, jnp.eye(3, dtype=a.dtype)).T
 
 
+def _mm(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
+    """a @ b for small matrices (..., n, k) @ (..., k, m), its k products written out: XLA's
+    CPU backend runs batched products of 3x3 and 6x6 matrices as one small kernel each, and
+    these fused elementwise ones 4-6x faster."""
+    return sum(a[..., :, k, None] * b[..., None, k, :] for k in range(a.shape[-1]))
+
+
 def _right_jacobian_inverse(r: jnp.ndarray) -> jnp.ndarray:
     """d log(exp(r) exp(d)) / dd at d = 0 (6, 6) for r = [v, w]: J_l^-1(-r) (Barfoot),
     [[K, -K Q K], [0, K]] with K = J_l^-1(phi) = I - W / 2 + D W^2 and Q(rho, phi)
@@ -193,23 +200,23 @@ def _right_jacobian_inverse(r: jnp.ndarray) -> jnp.ndarray:
                   (2 * th - 3 * sin + th * cos) / (2 * t2 * t2 * th))
     d = jnp.where(small, series(1 / 12, 1 / 720, 1 / 30240, 1 / 1209600),
                   (1 - 0.5 * th / jnp.tan(0.5 * th)) / t2)
-    WP, PW, WW = W @ P, P @ W, W @ W
-    WPW = WP @ W
-    Q = (0.5 * P + a * (WP + PW + WPW) + b * (WW @ P + PW @ W - 3 * WPW)
-         + c * (WPW @ W + W @ WPW))
+    WP, PW, WW = _mm(W, P), _mm(P, W), _mm(W, W)
+    WPW = _mm(WP, W)
+    Q = (0.5 * P + a * (WP + PW + WPW) + b * (_mm(WW, P) + _mm(PW, W) - 3 * WPW)
+         + c * (_mm(WPW, W) + _mm(W, WPW)))
     K = jnp.eye(3, dtype=r.dtype) - 0.5 * W + d * WW
-    return jnp.block([[K, -K @ Q @ K], [jnp.zeros_like(K), K]])
+    return jnp.block([[K, -_mm(_mm(K, Q), K)], [jnp.zeros_like(K), K]])
 
 
 def _adjoint(T: Pose) -> jnp.ndarray:
     """Ad(T) (6, 6) for twists [v, w]: [[R, [t]x R], [0, R]] (T exp(xi) T^-1 = exp(Ad(T) xi))."""
-    return jnp.block([[T.R, _hat(T.t) @ T.R], [jnp.zeros_like(T.R), T.R]])
+    return jnp.block([[T.R, _mm(_hat(T.t), T.R)], [jnp.zeros_like(T.R), T.R]])
 
 
 def _jacobian(r: jnp.ndarray, Tj: Pose) -> jnp.ndarray:
     """A (6, 6), the derivative of an edge's error r in node j's left twist (node i's is -A):
     T_j^-1 exp(d) T_j = exp(Ad(T_j^-1) d), then log's derivative on the right at exp(r)."""
-    return _right_jacobian_inverse(r) @ _adjoint(Tj.inverse())
+    return _mm(_right_jacobian_inverse(r), _adjoint(Tj.inverse()))
 
 
 def _left_twist(T: Pose, dT: Pose) -> jnp.ndarray:
@@ -224,7 +231,9 @@ def _left_twist(T: Pose, dT: Pose) -> jnp.ndarray:
 def _edge_error(Ti: Pose, Tj: Pose, Z: Pose) -> jnp.ndarray:
     """r = log(Z^-1 T_i^-1 T_j) (6,); its derivative is analytic (``_edge_error_jvp``), so
     derivatives never differentiate ``Pose.log`` itself."""
-    return (Z.inverse() @ (Ti.inverse() @ Tj)).log()
+    ZiT, RiT = jnp.swapaxes(Z.R, -1, -2), jnp.swapaxes(Ti.R, -1, -2)
+    t = _mm(RiT, (Tj.t - Ti.t)[..., None])[..., 0] - Z.t  # T_i^-1 T_j's, less Z's
+    return Pose(_mm(ZiT, _mm(RiT, Tj.R)), _mm(ZiT, t[..., None])[..., 0]).log()
 
 
 @_edge_error.defjvp
@@ -268,9 +277,9 @@ def _edge_terms(xi: Pose, xj: Pose, measured: jnp.ndarray, information: jnp.ndar
     r = jax.vmap(_edge_error)(xi, xj, Pose.from_matrix(measured, orthonormalise=None))
     A = jax.vmap(_jacobian)(r, xj)
     _, rho, w = _robust(r, information, e, c)
-    WA = w[:, None, None] * jnp.einsum("eab,ebc->eac", information, A)  # w Omega A
+    WA = w[:, None, None] * _mm(information, A)  # w Omega A
     ge = jnp.einsum("eba,eb->ea", WA, r)  # w A^T Omega r
-    return rho, ge, jnp.einsum("eba,ebc->eac", A, WA)
+    return rho, ge, _mm(jnp.swapaxes(A, 1, 2), WA)
 
 
 def _system(x: Pose, measured: jnp.ndarray, information: jnp.ndarray, e: _Edges, c: float
@@ -319,7 +328,7 @@ def _damped_step(s: _System, lam: jnp.ndarray, e: _Edges, spec: tuple) -> jnp.nd
     b = jnp.where(mov, -s.g, 0.0)
     if spec[1] == "direct":  # H's edge blocks: -M at (i, j) and (j, i)
         return jnp.where(mov, direct(Blocks(damped, -s.M, -s.M, e.i, e.j, e.valid, e.movable),
-                                     b), 0.0)
+                                     b, symmetric=True), 0.0)
 
     def op(v):  # H v: one gather, 6x6 blocks per edge, one scatter
         v = jnp.where(mov, v, 0.0)
@@ -383,14 +392,15 @@ def _implicit_bwd(spec, res, ct):
 _implicit.defvjp(_implicit_fwd, _implicit_bwd)
 
 
-@partial(jax.jit, static_argnames=("robust_scale", "iterations", "step_tol", "linear_solver",
-                                   "cg_iterations", "cg_tol"))
+@partial(jax.jit, static_argnames=("robust_scale", "iterations", "step_tol", "cost_tol",
+                                   "linear_solver", "cg_iterations", "cg_tol"))
 def optimise(
     graph: PoseGraph,
     *,
     robust_scale: float = ROBUST_SCALE,
     iterations: int = 30,
     step_tol: float = 1e-5,
+    cost_tol: float = 1e-6,
     linear_solver: str = "direct",
     cg_iterations: int = 1000,
     cg_tol: float = 1e-3,
@@ -401,7 +411,8 @@ def optimise(
     quantile with 6 degrees of freedom, so a loop edge as far off as the worst 1 % of inliers
     keeps half its weight); iterations: the LM tries at most; step_tol: stop once a try's
     largest twist component (m or rad) is below it, or below 64 eps max|t| of the start's
-    positions (what the dtype resolves there), or after 6 rejected tries in a row;
+    positions (what the dtype resolves there), or once a kept try lowers the cost by less
+    than ``cost_tol`` of it (relative; 0: never), or after 6 rejected tries in a row;
     linear_solver: how each linear system (the LM step, the derivative's adjoint) is solved:
     "direct", a sparse LU on the host (``block_sparse.direct``: exact, graphs of a vmapped
     batch one after another), or "cg", preconditioned conjugate gradients on the device
@@ -422,17 +433,19 @@ def optimise(
         return _system(x, measured, information, e, c)
 
     def body(carry):
-        k, state = carry
+        k, state, _ = carry
+        before = state.system.cost
         state, _ = POSE_GRAPH_DAMPING.step(
             state, solve=lambda x, s, lam: _damped_step(s, lam, e, spec),
             apply=jax.vmap(Pose.retract), evaluate=evaluate, accept=_settles,
             norm=lambda delta: jnp.max(jnp.abs(delta)))  # size-independent
-        return k + 1, state
+        kept = state.rejects == 0
+        return k + 1, state, kept & (before - state.system.cost < cost_tol * before)
 
     def cond(carry):
-        k, state = carry
-        return (k == 0) | ((k <= iterations) & ((k == 1) |
-                           POSE_GRAPH_DAMPING.continues(state, tol, _MAX_REJECTS)))
+        k, state, flat = carry
+        return (k == 0) | ((k <= iterations) & ((k == 1) | (
+            ~flat & POSE_GRAPH_DAMPING.continues(state, tol, _MAX_REJECTS))))
 
     # pass 0 evaluates the start (a zero step, kept against an infinite cost, lam back to
     # lam_init): the system is traced once, which halves the compile time
@@ -444,7 +457,8 @@ def optimise(
                            D=jnp.broadcast_to(jnp.eye(6, dtype=start.dtype), blank.D.shape))
     lam = POSE_GRAPH_DAMPING.lam_init / POSE_GRAPH_DAMPING.shrink
     state = POSE_GRAPH_DAMPING.init(x0, blank, start.dtype, lam)
-    passes, state = jax.lax.while_loop(cond, body, (jnp.asarray(0, jnp.int32), state))
+    passes, state, _ = jax.lax.while_loop(
+        cond, body, (jnp.asarray(0, jnp.int32), state, jnp.asarray(False)))
     x = Pose(*_implicit(spec, *state.x, graph.measured, graph.information, e, state.system.D))
     poses = jnp.where(e.movable[:, None, None], x.as_matrix(), start)
     chi2, rho, weight = _robust(_residual(x, graph.measured, e), graph.information, e, c)

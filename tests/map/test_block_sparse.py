@@ -1,9 +1,12 @@
-"""The pose graph's block-sparse systems (``map.block_sparse``): the host LU solves what the
-blocks say (against a dense solve of the same matrix), on the movable nodes only, with
-padding edges ignored and parallel edges summed, in float32 and float64, under jit and vmap,
-the same bits every call; the matrix-vector product and the PCG agree with it."""
+"""The pose graph's block-sparse systems (``map.block_sparse``): the host LU, and the
+Cholesky of symmetric ones, solve what the blocks say (against a dense solve of the same
+matrix), on the movable nodes only, with padding edges ignored and parallel edges summed, in
+float32 and float64, under jit and vmap, the same bits every call; the matrix-vector product
+and the PCG agree with it."""
 
 from __future__ import annotations
+
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -113,3 +116,44 @@ def test_an_exactly_singular_system_gives_nan_on_its_movable_nodes():
         H = H._replace(D=H.D.at[5].set(0.0), U=jnp.zeros_like(H.U), L=jnp.zeros_like(H.L))
         x = np.asarray(bs.direct(H, jnp.ones((7, 6))))
         assert np.isnan(x[np.asarray(H.movable)]).all() and (x[3] == 1.0).all()
+
+
+def test_symmetric_solves_by_cholesky_agree_with_the_dense_solve_and_reuse_the_analysis():
+    with jax.enable_x64(True):
+        H, dense = random_blocks(12)
+        rng = np.random.default_rng(13)
+        bs._ANALYSES.clear()
+        for _ in range(2):  # the second system: same pattern, new values, one analysis
+            b = rng.normal(size=(7, 6))
+            x = np.asarray(jax.jit(partial(bs.direct, symmetric=True))(H, jnp.asarray(b)))
+            np.testing.assert_allclose(x.ravel(), np.linalg.solve(dense, b.ravel()),
+                                       rtol=1e-10, atol=1e-12)
+            np.testing.assert_array_equal(x[3], b[3])
+            H = H._replace(D=H.D * 2.0, U=H.U * 2.0, L=H.L * 2.0)
+            dense = 2.0 * dense
+            dense[18:24, 18:24] = np.eye(6)  # node 3: identity rows stay identity
+        assert len(bs._ANALYSES) == 1
+        again = np.asarray(bs.direct(H, jnp.asarray(b), symmetric=True))
+        np.testing.assert_array_equal(again, np.asarray(bs.direct(H, jnp.asarray(b),
+                                                                  symmetric=True)))
+
+
+def test_symmetric_solves_take_the_symmetric_part_and_fall_back_where_not_definite():
+    with jax.enable_x64(True):
+        H, dense = random_blocks(14)
+        rng = np.random.default_rng(15)
+        skew = 1e-3 * rng.normal(size=H.D.shape)
+        bent = H._replace(D=H.D + skew)  # 0.5 (H + H^T) is the original H
+        b = rng.normal(size=(7, 6))
+        x = np.asarray(bs.direct(bent, jnp.asarray(b), symmetric=True))
+        sym = dense.copy()
+        for k in range(7):
+            if k != 3:
+                sym[6 * k:6 * k + 6, 6 * k:6 * k + 6] += 0.5 * (skew[k] + skew[k].T)
+        np.testing.assert_allclose(x.ravel(), np.linalg.solve(sym, b.ravel()), rtol=1e-9)
+        # indefinite (a diagonal block negated): no Cholesky, the LU still solves it
+        flipped = H._replace(D=H.D.at[5].multiply(-1.0))
+        dense_f = dense.copy()
+        dense_f[30:36, 30:36] *= -1.0
+        x = np.asarray(bs.direct(flipped, jnp.asarray(b), symmetric=True))
+        np.testing.assert_allclose(x.ravel(), np.linalg.solve(dense_f, b.ravel()), rtol=1e-8)
