@@ -412,7 +412,7 @@ def optimise(
     keeps half its weight); iterations: the LM tries at most; step_tol: stop once a try's
     largest twist component (m or rad) is below it, or below 64 eps max|t| of the start's
     positions (what the dtype resolves there), or once a kept try lowers the cost by less
-    than ``cost_tol`` of it (relative; 0: never), or after 6 rejected tries in a row;
+    than ``cost_tol`` of it (relative; 0: no such test), or after 6 rejected tries in a row;
     linear_solver: how each linear system (the LM step, the derivative's adjoint) is solved:
     "direct", a sparse LU on the host (``block_sparse.direct``: exact, graphs of a vmapped
     batch one after another), or "cg", preconditioned conjugate gradients on the device
@@ -439,8 +439,8 @@ def optimise(
             state, solve=lambda x, s, lam: _damped_step(s, lam, e, spec),
             apply=jax.vmap(Pose.retract), evaluate=evaluate, accept=_settles,
             norm=lambda delta: jnp.max(jnp.abs(delta)))  # size-independent
-        kept = state.rejects == 0
-        return k + 1, state, kept & (before - state.system.cost < cost_tol * before)
+        flat = (state.rejects == 0) & (before - state.system.cost < cost_tol * before)
+        return k + 1, state, flat & (cost_tol > 0)
 
     def cond(carry):
         k, state, flat = carry
