@@ -16,8 +16,8 @@ equations with iteratively reweighted robust edges (weights rho'(chi2) from the 
 point) and the exact gradient, Marquardt-damped (H + lam diag H). With J_j = A the derivative
 of r in node j's twist and J_i = -A, A = (d log(E exp(d)) / dd at 0) Ad(T_j^-1), E = exp(r),
 H is block-sparse: M = w A^T Omega A on the diagonal blocks of i and j, -M at (i, j) and
-(j, i). ``linear_solver="direct"`` (the default) factors it on the host (SciPy's sparse LU,
-``block_sparse.direct``: one factorisation a try, whatever the graph's shape);
+(j, i). ``linear_solver="direct"`` (the default) factors it on the host (a sparse Cholesky,
+``block_sparse.direct``: one numeric factorisation a try, whatever the graph's shape);
 ``linear_solver="cg"`` never forms it: preconditioned conjugate gradients (6x6
 block-Jacobi) multiply by it one edge's blocks at a time on the device, in iterations that
 grow with the graph. Fixed nodes, and free nodes that no valid edge touches, do not move
@@ -321,7 +321,7 @@ def _settles(old: _System, new: _System) -> jnp.ndarray:
 
 def _damped_step(s: _System, lam: jnp.ndarray, e: _Edges, spec: tuple) -> jnp.ndarray:
     """The LM step (N, 6): (H + lam diag H) delta = -g on movable nodes, 0 elsewhere, by the
-    sparse LU (spec[1] "direct") or PCG (spec[1] "cg", spec[2:]: iterations, tolerance)."""
+    sparse Cholesky (spec[1] "direct") or PCG (spec[1] "cg", spec[2:]: iterations, tolerance)."""
     mov = e.movable[:, None]
     diag = jnp.diagonal(s.D, axis1=-2, axis2=-1)
     damped = s.D + lam * jax.vmap(jnp.diag)(diag)
@@ -414,8 +414,8 @@ def optimise(
     positions (what the dtype resolves there), or once a kept try lowers the cost by less
     than ``cost_tol`` of it (relative; 0: no such test), or after 6 rejected tries in a row;
     linear_solver: how each linear system (the LM step, the derivative's adjoint) is solved:
-    "direct", a sparse LU on the host (``block_sparse.direct``: exact, graphs of a vmapped
-    batch one after another), or "cg", preconditioned conjugate gradients on the device
+    "direct", a sparse factorisation on the host (``block_sparse.direct``: exact, graphs of
+    a vmapped batch one after another), or "cg", preconditioned conjugate gradients on the device
     (``block_sparse.pcg``: no host round trip; its iterations grow with the graph);
     cg_iterations, cg_tol: the conjugate gradients' budget and relative residual ("cg" only).
     Jitted, vmap-able over graphs of one shape; reverse-differentiable in ``measured`` and
