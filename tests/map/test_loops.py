@@ -1,4 +1,4 @@
-"""The pose graph in the tracker's hands (``pipeline/loops.py``): which keyframes are tied
+"""The pose graph in the tracker's hands (``map/loops.py``): which keyframes are tied
 already, the information floor, how a solve's correction reaches keyframes made since, the
 gauge of each connected part, and that a false loop among true ones is rejected while the
 true ones are kept (synthetic keyframes); and a real clip played forward and back, whose
@@ -132,6 +132,33 @@ def test_loops_spread_the_drift_and_reject_a_false_one(false_loop):
         moves = loops.corrections(closed, kmap.ids)
         np.testing.assert_allclose(moves[24], moves[23])
         assert 0 not in moves
+    finally:
+        loops.close()
+
+
+def test_a_search_and_a_solve_pending_at_the_end_are_taken_not_dropped():
+    """A run's end (``KeyframeMapPart.finish``) asks for what is due at None: a loop search
+    and a pose-graph solve handed over long before their lag are waited for and given, not
+    dropped; before the lag neither is."""
+    truth = circle(24)
+    loops = Loops(Config(loop_lag=10_000))
+    try:
+        kmap = chain(truth, np.array([0.004, 0.0, 0.002, 0.0, 0.003, 0.0]), loops)
+        placed = SimpleNamespace(keyframe=SimpleNamespace(id=0), note="searched",
+                                 result=SimpleNamespace(T_c_k=inverse_np(truth[23]) @ truth[0],
+                                                        covariance=COV))
+        loops.search(23, lambda: placed, 5)
+        assert loops.found(6) == [] and not loops.searches()  # in flight, not due
+        (edge,) = loops.found(None)
+        assert (edge.i, edge.j, edge.note) == (0, 23, "searched") and loops.searches()
+        assert loops.submit(kmap, 7)
+        assert loops.due(8) is None
+        closed = loops.due(None)
+        assert closed is not None and closed.finite and len(closed.kept) == 1
+        solved = {k: kmap[k].pose for k in kmap} | {
+            k: closed.moves[k] @ kmap[k].pose for k in closed.moves}
+        assert end_error(solved, truth) < 0.1 * end_error({k: kmap[k].pose for k in kmap},
+                                                           truth)
     finally:
         loops.close()
 
