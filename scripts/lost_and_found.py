@@ -16,7 +16,9 @@ the cover within 2 cm and 2 degrees of the truth once the estimate is aligned on
 before the cover (``measure.pose_errors``) and how long after the cover it comes, the OK
 frames after it that are not within that, how the map placed frames (found again,
 revisits), and ATE over every frame and over the frames not covered, with the uncovered
-run's beside it. Prints a line per seed and writes everything to JSON.
+run's beside it; the mean and median ms a frame of both (``measure.frame_stats``: a chain
+made at a guess asks the map, and that must not cost the frame). Prints a line per seed and
+writes everything to JSON.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ from edgevo_jax.datasets.cover import covered_copy
 from edgevo_jax.datasets.tum import EmptyDepthWarning, load_sequence
 from edgevo_jax.provenance import machine_info
 from edgevo_jax.reports import digest, int_list, write_json
-from edgevo_jax.runs.measure import accuracy, groundtruth_at, pose_errors
+from edgevo_jax.runs.measure import accuracy, frame_stats, groundtruth_at, pose_errors
 from edgevo_jax.runs.run import run_sequence
 
 #: a frame is placed right within these of the truth (m, degrees)
@@ -65,6 +67,7 @@ def covered_run(seq, run, cover: list[int], gt: np.ndarray) -> dict:
         "ate_m": accuracy(seq.groundtruth, run.timestamps, run.poses)["ate_rmse_m"],
         "ate_not_covered_m": accuracy(seq.groundtruth, run.timestamps[kept],
                                       run.poses[kept])["ate_rmse_m"],
+        "ms": frame_stats(run.frame_ms),
         "frames": [{"i": i, "state": s, "reason": r.reason, "placed": r.placed,
                     "err_m": float(trans[i]), "err_deg": float(rot[i])}
                    for i, (s, r) in enumerate(zip(states, run.results, strict=True))],
@@ -96,6 +99,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             before = run_sequence(plain, config, progress=False)
             after = run_sequence(covered, config, progress=False)
             row = {"seed": seed, **covered_run(covered, after, args.cover, gt),
+                   "uncovered_ms": frame_stats(before.frame_ms),
                    "digest": digest(after), "uncovered_digest": digest(before),
                    "uncovered_ate_m": accuracy(plain.groundtruth, before.timestamps,
                                                before.poses)["ate_rmse_m"],
@@ -109,11 +113,16 @@ def main(argv: Sequence[str] | None = None) -> int:
                   f"frames off after it {len(row['ok_off_after'])}; found again "
                   f"{row['found_again']}; ATE {1e3 * row['ate_m']:.1f} mm (not covered "
                   f"{1e3 * row['ate_not_covered_m']:.1f}), uncovered "
-                  f"{1e3 * row['uncovered_ate_m']:.1f} mm", flush=True)
+                  f"{1e3 * row['uncovered_ate_m']:.1f} mm; ms a frame {row['ms']['mean']:.1f} "
+                  f"(median {row['ms']['median']:.1f}), uncovered "
+                  f"{row['uncovered_ms']['mean']:.1f} ({row['uncovered_ms']['median']:.1f})",
+                  flush=True)
     ratio = [r["ate_m"] / r["uncovered_ate_m"] for r in runs]
     kept = [r["ate_not_covered_m"] / r["uncovered_ate_m"] for r in runs]
+    slow = [r["ms"]["mean"] / r["uncovered_ms"]["mean"] for r in runs]
     print(f"ATE covered / uncovered: {min(ratio):.2f}-{max(ratio):.2f} (frames not covered: "
-          f"{min(kept):.2f}-{max(kept):.2f})")
+          f"{min(kept):.2f}-{max(kept):.2f}); mean ms a frame covered / uncovered "
+          f"{min(slow):.2f}-{max(slow):.2f}")
     write_json(args.out_json, {
         "command": shlex.join(["python", "scripts/lost_and_found.py", *argv]),
         "machine": machine_info(), "clip": str(args.clip), "cover": args.cover,
