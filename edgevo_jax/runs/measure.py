@@ -22,7 +22,7 @@ from .run import initial_pose
 
 __all__ = ["DIVERGED_ROT_DEG", "DIVERGED_TRANS_M", "GT_MAX_DIFF_S", "WARMUP_FRAMES",
            "accuracy", "diverged_frames", "finite_stats", "frame_stats", "groundtruth_at",
-           "load_clip", "motion_errors", "pose_errors", "run_peer"]
+           "load_clip", "motion_errors", "pose_errors", "run_peer", "silently_wrong"]
 
 #: frames left out of warm statistics: frame 0 sets up, frame 1 is the first pair (compiles)
 WARMUP_FRAMES = 2
@@ -151,12 +151,30 @@ def diverged_frames(poses: np.ndarray, states: Sequence[str], gt_poses: np.ndarr
     the same timestamps by more than ``trans_m`` metres or ``rot_deg`` degrees. A motion into
     or out of a WEAK or LOST frame is not judged: the method flagged it, so any jump there
     is not silent. Frames without ground truth on either side are not judged."""
+    return _off(poses, states, gt_poses, trans_m, rot_deg, after_ok=True)
+
+
+def silently_wrong(poses: np.ndarray, states: Sequence[str], gt_poses: np.ndarray, *,
+                   trans_m: float = DIVERGED_TRANS_M, rot_deg: float = DIVERGED_ROT_DEG
+                   ) -> list[int]:
+    """Indices of the frames called OK whose motion from the previous frame of the written
+    trajectory, whatever that frame's state, differs from the ground truth's by more than
+    ``trans_m`` metres or ``rot_deg`` degrees (arguments as :func:`diverged_frames`, which
+    judges only OK after OK): an OK frame that jumps away from a WEAK or LOST one is a user's
+    wrong pose all the same. Frames without ground truth on either side are not judged."""
+    return _off(poses, states, gt_poses, trans_m, rot_deg, after_ok=False)
+
+
+def _off(poses, states, gt_poses, trans_m: float, rot_deg: float, *, after_ok: bool
+         ) -> list[int]:
+    """The OK frames i >= 1 (after an OK frame too, with ``after_ok``) whose motion from
+    frame i - 1 is off the truth's by more than the bounds."""
     if len(states) != len(poses):
         raise ValueError(f"{len(states)} states for {len(poses)} poses")
     trans, rot = motion_errors(poses, gt_poses)
     out = []
     for i in range(1, len(states)):
-        if states[i] != "OK" or states[i - 1] != "OK":
+        if states[i] != "OK" or (after_ok and states[i - 1] != "OK"):
             continue
         t, r = trans[i - 1], rot[i - 1]
         if math.isfinite(t) and math.isfinite(r) and (t > trans_m or r > rot_deg):

@@ -86,6 +86,21 @@ def test_diverged_frames_ignores_jumps_on_flagged_frames(flag: str) -> None:
     assert measure.diverged_frames(outlier, ["OK"] * len(gt), gt) == [JUMP_T, JUMP_T + 1]
 
 
+def test_silently_wrong_judges_an_ok_frame_after_any_frame() -> None:
+    """An OK frame that jumps away from a flagged one is silently wrong (the user trusts it);
+    diverged_frames does not judge it; a flagged frame itself never is."""
+    gt = _groundtruth()
+    states = ["OK"] * len(gt)
+    states[JUMP_T - 1] = "WEAK"  # the frame before the 6 cm jump
+    states[JUMP_R] = "LOST"  # the 4 deg turn lands on a flagged frame
+    wrong = _injected(gt)
+    assert measure.silently_wrong(wrong, states, gt) == [JUMP_T]
+    assert measure.diverged_frames(wrong, states, gt) == []
+    assert measure.silently_wrong(wrong, ["OK"] * len(gt), gt) == [JUMP_R, JUMP_T]
+    assert measure.silently_wrong(gt, states, gt) == []
+    assert measure.silently_wrong(wrong, states, gt, trans_m=0.07) == []
+
+
 def test_diverged_frames_skips_frames_without_groundtruth() -> None:
     gt = _groundtruth()
     partial = gt.copy()
