@@ -53,31 +53,33 @@ class Blocks(NamedTuple):
         return self._replace(D=t(self.D), U=t(self.L), L=t(self.U))
 
 
+def _pattern(i, j, valid, movable):
+    """Where H's blocks stand in its movable part (host arrays in, module doc): the movable
+    nodes (m,), the edges kept (E,) bool (valid, both nodes movable), and the scalar rows
+    and columns (m + 2k, 6, 6) of D's movable blocks, then the kept edges' U, then their L."""
+    nodes = np.flatnonzero(movable)
+    slot = np.cumsum(movable) - 1  # a movable node's block row
+    keep = valid & movable[i] & movable[j]
+    bi, bj = slot[i[keep]], slot[j[keep]]
+    diagonal = np.arange(nodes.size)
+    a = np.arange(6)
+    brow, bcol = np.concatenate([diagonal, bi, bj]), np.concatenate([diagonal, bj, bi])
+    shape = (brow.size, 6, 6)
+    return (nodes, keep, np.broadcast_to(6 * brow[:, None, None] + a[None, :, None], shape),
+            np.broadcast_to(6 * bcol[:, None, None] + a[None, None, :], shape))
+
+
 def _csc(D, U, L, i, j, valid, movable):
     """The movable part of H as a SciPy CSC matrix (6m, 6m) in float64, and the movable
     nodes (m,) in index order (host arrays in, module doc)."""
     import scipy.sparse
 
-    nodes = np.flatnonzero(movable)
-    m = nodes.size
-    slot = np.cumsum(movable) - 1  # a movable node's block row
-    keep = valid & movable[i] & movable[j]
-    bi, bj = slot[i[keep]], slot[j[keep]]
+    nodes, keep, rows, cols = _pattern(i, j, valid, movable)
+    n = 6 * nodes.size
     blocks = np.concatenate([D[nodes], U[keep], L[keep]]).astype(np.float64)
-    brow = np.concatenate([np.arange(m), bi, bj])
-    bcol = np.concatenate([np.arange(m), bj, bi])
-    rows, cols = _entries(brow, bcol)
     H = scipy.sparse.coo_matrix((blocks.ravel(), (rows.ravel(), cols.ravel())),
-                                shape=(6 * m, 6 * m)).tocsc()  # duplicates summed
+                                shape=(n, n)).tocsc()  # duplicates summed
     return H, nodes
-
-
-def _entries(brow: np.ndarray, bcol: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The scalar rows and columns (K, 6, 6) of K 6x6 blocks at block rows and columns (K,)."""
-    a = np.arange(6)
-    shape = (brow.size, 6, 6)
-    return (np.broadcast_to(6 * brow[:, None, None] + a[None, :, None], shape),
-            np.broadcast_to(6 * bcol[:, None, None] + a[None, None, :], shape))
 
 
 class _Analysis:
@@ -91,13 +93,8 @@ class _Analysis:
     def __init__(self, i, j, valid, movable):
         from cvxopt import cholmod, matrix, spmatrix
 
-        self.nodes = np.flatnonzero(movable)
-        m, n = self.nodes.size, 6 * self.nodes.size
-        slot = np.cumsum(movable) - 1
-        self.keep = valid & movable[i] & movable[j]
-        bi, bj = slot[i[self.keep]], slot[j[self.keep]]
-        rows, cols = _entries(np.concatenate([np.arange(m), bi, bj]),
-                              np.concatenate([np.arange(m), bj, bi]))
+        self.nodes, self.keep, rows, cols = _pattern(i, j, valid, movable)
+        n = 6 * self.nodes.size
         rows, cols = rows.ravel(), cols.ravel()
         lower = np.maximum(cols, rows) + n * np.minimum(cols, rows)  # column-major: CSC order
         unique, self.dest = np.unique(lower, return_inverse=True)
