@@ -9,14 +9,17 @@ import json
 import math
 import os
 import re
+import shlex
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from .io import json_safe
+from .provenance import machine_info
 
-__all__ = ["digest", "fmt", "int_list", "markdown_table", "write_json", "write_text"]
+__all__ = ["digest", "fmt", "int_list", "markdown_table", "script_record", "write_json",
+           "write_text"]
 
 _INT_ITEM = re.compile(r"^(-?\d+)\s*(?:-\s*(-?\d+))?$")
 
@@ -66,6 +69,13 @@ def write_json(path: str | os.PathLike[str], obj: object, *, indent: int | None 
     """Write ``obj`` as JSON to ``path`` (parent folders made): NaN and infinities as null,
     numpy arrays and scalars as lists and numbers (``io.json_safe``), a final newline."""
     return write_text(path, json.dumps(json_safe(obj), indent=indent, allow_nan=False) + "\n")
+
+
+def script_record(script: str, argv: Sequence[str]) -> dict[str, object]:
+    """The head of a script's JSON: the command that made it (``python scripts/<script>``
+    and its arguments, shell-quoted) and the machine it ran on (``provenance.machine_info``)."""
+    return {"command": shlex.join(["python", f"scripts/{script}", *argv]),
+            "machine": machine_info()}
 
 
 def int_list(spec: str) -> list[int]:

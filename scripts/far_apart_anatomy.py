@@ -19,7 +19,6 @@ are spread over the true motion; writes everything to JSON.
 from __future__ import annotations
 
 import argparse
-import shlex
 import sys
 from collections import Counter
 from collections.abc import Sequence
@@ -30,8 +29,7 @@ import numpy as np
 from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets.tum import load_sequence, subsequence
 from edgevo_jax.geometry import inverse_np, rotation_angle_np
-from edgevo_jax.provenance import machine_info
-from edgevo_jax.reports import int_list, write_json
+from edgevo_jax.reports import int_list, script_record, write_json
 from edgevo_jax.runs.measure import (
     accuracy,
     diverged_frames,
@@ -113,8 +111,8 @@ def main(argv: Sequence[str] | None = None) -> int:
           f"{1e3 * mean_ate:.1f} mm; silently wrong frames "
           f"{sum(len(r['silently_wrong']) for r in runs)}")
     write_json(args.out_json, {
-        "command": shlex.join(["python", "scripts/far_apart_anatomy.py", *argv]),
-        "machine": machine_info(), "clip": str(args.clip), "step": args.step, "runs": runs})
+        **script_record("far_apart_anatomy.py", argv),
+        "clip": str(args.clip), "step": args.step, "runs": runs})
     return 0
 
 

@@ -18,7 +18,6 @@ rejected and wrong (``measure.wrong_loops``), and the digests of both runs.
 from __future__ import annotations
 
 import argparse
-import shlex
 import sys
 import tempfile
 from collections.abc import Sequence
@@ -29,8 +28,7 @@ import numpy as np
 from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets import load_sequence, there_and_back
 from edgevo_jax.datasets.perturb import perturbed_copy
-from edgevo_jax.provenance import machine_info
-from edgevo_jax.reports import digest, int_list, write_json
+from edgevo_jax.reports import digest, int_list, script_record, write_json
 from edgevo_jax.runs.measure import accuracy, end_to_end_error, groundtruth_at, wrong_loops
 from edgevo_jax.runs.run import run_sequence
 
@@ -69,8 +67,8 @@ def main(argv: Sequence[str] | None = None) -> int:
           f"{max(ratio):.2f}); closed in {sum(r['loops']['loops_closed'] > 0 for r in rows)} "
           f"of {len(rows)} seeds; wrong loops {sum(r['loops']['loops_wrong'] for r in rows)}")
     write_json(args.out_json, {
-        "command": shlex.join(["python", "scripts/loop_after_drift.py", *argv]),
-        "machine": machine_info(), "clip": str(args.clip), "frames": len(seq),
+        **script_record("loop_after_drift.py", argv),
+        "clip": str(args.clip), "frames": len(seq),
         "depth_scale": args.depth_scale, "runs": rows})
     return 0
 

@@ -23,7 +23,6 @@ JSON.
 from __future__ import annotations
 
 import argparse
-import shlex
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -33,8 +32,7 @@ import numpy as np
 from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets.pingpong import pingpong
 from edgevo_jax.datasets.tum import load_sequence
-from edgevo_jax.provenance import machine_info
-from edgevo_jax.reports import digest, int_list, write_json
+from edgevo_jax.reports import digest, int_list, script_record, write_json
 from edgevo_jax.runs.measure import accuracy, end_to_end_error, groundtruth_at, wrong_loops
 from edgevo_jax.runs.run import run_sequence
 from edgevo_jax.tracking import places as relocalise
@@ -142,8 +140,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         ratio = [r["false_loop"]["ate_m"] / r["loops"]["ate_m"] for r in rows]
         print(f"ATE with the false loop / without: {min(ratio):.3f}-{max(ratio):.3f}")
     write_json(args.out_json, {
-        "command": shlex.join(["python", "scripts/loop_closure.py", *argv]),
-        "machine": machine_info(), "clip": str(args.clip), "frames": len(seq),
+        **script_record("loop_closure.py", argv),
+        "clip": str(args.clip), "frames": len(seq),
         "runs": rows})
     return 0
 

@@ -24,7 +24,6 @@ writes everything to JSON.
 from __future__ import annotations
 
 import argparse
-import shlex
 import sys
 import tempfile
 import warnings
@@ -36,8 +35,7 @@ import numpy as np
 from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets.cover import covered_copy
 from edgevo_jax.datasets.tum import EmptyDepthWarning, load_sequence
-from edgevo_jax.provenance import machine_info
-from edgevo_jax.reports import digest, int_list, write_json
+from edgevo_jax.reports import digest, int_list, script_record, write_json
 from edgevo_jax.runs.measure import accuracy, frame_stats, groundtruth_at, pose_errors
 from edgevo_jax.runs.run import run_sequence
 
@@ -124,8 +122,8 @@ def main(argv: Sequence[str] | None = None) -> int:
           f"{min(kept):.2f}-{max(kept):.2f}); mean ms a frame covered / uncovered "
           f"{min(slow):.2f}-{max(slow):.2f}")
     write_json(args.out_json, {
-        "command": shlex.join(["python", "scripts/lost_and_found.py", *argv]),
-        "machine": machine_info(), "clip": str(args.clip), "cover": args.cover,
+        **script_record("lost_and_found.py", argv),
+        "clip": str(args.clip), "cover": args.cover,
         "runs": runs})
     return 0
 

@@ -20,7 +20,6 @@ OK frames). Prints a line per clip and rate and writes every run to JSON.
 from __future__ import annotations
 
 import argparse
-import shlex
 import sys
 import warnings
 from collections.abc import Sequence
@@ -30,8 +29,7 @@ import numpy as np
 
 from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets.tum import EmptyDepthWarning, load_sequence, subsequence
-from edgevo_jax.provenance import machine_info
-from edgevo_jax.reports import int_list, write_json
+from edgevo_jax.reports import int_list, script_record, write_json
 from edgevo_jax.runs.measure import (
     DIVERGED_ROT_DEG,
     DIVERGED_TRANS_M,
@@ -105,8 +103,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                   f"{100 * s['flagged_share']:.1f} %; ATE mean {1e3 * s['ate_mean_m']:.1f} mm",
                   flush=True)
     write_json(args.out_json, {
-        "command": shlex.join(["python", "scripts/ok_means_right.py", *argv]),
-        "machine": machine_info(), "rates": rates, "runs": runs})
+        **script_record("ok_means_right.py", argv),
+        "rates": rates, "runs": runs})
     return 0
 
 

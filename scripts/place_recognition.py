@@ -26,7 +26,6 @@ redrawn), median and mean over 200 queries. Prints and writes JSON.
 from __future__ import annotations
 
 import argparse
-import shlex
 import sys
 import time
 from collections.abc import Sequence
@@ -40,8 +39,7 @@ from edgevo_jax.frontend.selection import KeyframeEdges
 from edgevo_jax.geometry import exp_np, inverse_np, rotation_angle_np
 from edgevo_jax.image.preprocess import preprocess
 from edgevo_jax.map import KeyframeMap, MapKeyframe, encode, make_ferns, predicted_overlap
-from edgevo_jax.provenance import machine_info
-from edgevo_jax.reports import write_json
+from edgevo_jax.reports import script_record, write_json
 from edgevo_jax.runs.measure import groundtruth_at
 
 #: edge points per frame kept for the overlap (an even subsample of its edges with depth)
@@ -204,8 +202,8 @@ def main(argv: Sequence[str] | None = None) -> int:
               f"{times[n]['overlapping_ms']['mean']:.3f} ms mean; encode "
               f"{times['encode_ms']['mean']:.2f} ms")
     write_json(args.out_json, {
-        "command": shlex.join(["python", "scripts/place_recognition.py", *argv]),
-        "machine": machine_info(), "recall": results, "timing": times})
+        **script_record("place_recognition.py", argv),
+        "recall": results, "timing": times})
     return 0
 
 

@@ -26,7 +26,7 @@ class Guess(NamedTuple):
     frame: int
     keyframe: int
     why: str
-    t: float = 0.0
+    t: float
 
     @property
     def reason(self) -> str:
