@@ -108,6 +108,15 @@ class Config:
     as w t; they cross at t = 2 w / a, 0.2 s for a hand-held camera turning at ~70 deg/s
     and accelerating at ~12 rad/s^2 (fr1_rpy); measured: docs/decisions.md, "A LOST frame
     holds the last pose"."""
+    depth_check_share: float = 0.6
+    """[-] The second opinion: a frame whose solve was searched for, confirmed from features
+    or placed by the map, or that follows a LOST frame, is WEAK when under this share of
+    the previous frame's depth points lie on the surfaces its depth image sees at the pose
+    relative to the previous frame (``frontend.depth.depth_agreement``: two depth images,
+    no edge); 0: no check. Why: ``docs/decisions.md``, "A second opinion from depth"."""
+    depth_check_tol_m: float = 0.02
+    """[m] A point agrees within this distance of the surface (growing with the square of
+    depth beyond 1.5 m, as the sensor's noise does)."""
     recovery_features: bool = True
     """[-] Recovery also starts from image features (ORB, then SIFT, matched, PnP;
     ``frontend/features.py``)."""
@@ -251,6 +260,10 @@ class Config:
             raise ValueError("Config.activation_depth_step must be >= 0 (0: no depth test)")
         if not 0.0 < self.map_overlap <= 1.0:
             raise ValueError("Config.map_overlap must be in (0, 1]")
+        if not 0.0 <= self.depth_check_share <= 1.0:
+            raise ValueError("Config.depth_check_share must be in [0, 1] (0: no check)")
+        if not self.depth_check_tol_m > 0.0:
+            raise ValueError("Config.depth_check_tol_m must be positive")
         if not self.map_chain_query_s >= 0.0:
             raise ValueError("Config.map_chain_query_s must be non-negative")
         for name in ("active_per_keyframe", "activation_cell", "mapping_iterations",

@@ -20,6 +20,17 @@ import numpy as np
 from ..camera import Intrinsics
 from ..geometry import Pose
 
+#: the second opinion (``depth_agreement``): points drawn from the previous frame's depth, and
+#: the fewest that must be judged (in view, in front of no other surface) for an answer
+AGREEMENT_POINTS = 1024
+AGREEMENT_MIN_JUDGED = 64
+#: a point this many tolerances behind the surface seen is occluded (not judged); one nearer
+#: to it than that but off it disagrees, as one in front of it does
+OCCLUDED = 4.0
+#: depth (m) at which the agreement's tolerance is its nominal value; it grows with the
+#: square of depth beyond, as a structured-light sensor's noise does
+AGREEMENT_NOMINAL_Z = 1.5
+
 #: grid step (px) of the keyframe's candidate depth points, and the largest relative depth
 #: change between a pixel's neighbours for its normal to count (a depth step is no plane)
 GRID_STEP = 4
@@ -73,6 +84,41 @@ def depth_points(depth: np.ndarray, intr: Intrinsics, count: int, *, min_depth: 
     pts[2] = 1.0
     pts[:, :keep.size], normals[:, :keep.size] = p, n
     return pts, normals
+
+
+def depth_agreement(previous: np.ndarray, depth: np.ndarray, T_cur_prev: np.ndarray,
+                    intr: Intrinsics, *, tol_m: float, min_depth: float, max_depth: float,
+                    seed: int) -> float | None:
+    """The share of the previous frame's depth points (``AGREEMENT_POINTS`` drawn with their
+    normals by ``depth_points``, ``seed``) that the frame's depth map (H, W, metres) puts on
+    their plane at the relative pose ``T_cur_prev`` (4, 4; p_cur = T p_prev): within
+    ``tol_m`` (x (z / ``AGREEMENT_NOMINAL_Z``)^2 beyond that depth) of it, among the points
+    judged: in view, with depth there, and not ``OCCLUDED`` tolerances or more behind the
+    surface seen (occluded points say nothing). None when fewer than
+    ``AGREEMENT_MIN_JUDGED`` are judged. A second opinion on a solve that the distance field
+    cannot give: two depth images, no edge in it."""
+    pts, normals = depth_points(previous, intr, AGREEMENT_POINTS, min_depth=min_depth,
+                                max_depth=max_depth, seed=seed)
+    T = np.asarray(T_cur_prev, np.float64)
+    valid = np.sum(normals * normals, axis=0) > 0
+    q = T[:3, :3] @ pts[:, valid] + T[:3, 3:4]
+    n = T[:3, :3] @ normals[:, valid]
+    fx, fy, cx, cy = (float(v) for v in intr)
+    h, w = depth.shape
+    z = q[2]
+    zs = np.where(z > 1e-6, z, 1.0)
+    ui, vi = np.round(fx * q[0] / zs + cx), np.round(fy * q[1] / zs + cy)
+    inside = (z > 1e-6) & (ui >= 0) & (ui <= w - 1) & (vi >= 0) & (vi <= h - 1)
+    ui, vi, q, n = ui[inside].astype(int), vi[inside].astype(int), q[:, inside], n[:, inside]
+    d = np.asarray(depth, np.float64)[vi, ui]
+    d = np.where(np.isfinite(d) & (d >= min_depth) & (d <= max_depth), d, 0.0)
+    p_c = np.stack([(ui - cx) / fx * d, (vi - cy) / fy * d, d])
+    tol = tol_m * np.maximum(1.0, (d / AGREEMENT_NOMINAL_Z) ** 2)
+    judged = (d > 0) & (q[2] - d <= OCCLUDED * tol)
+    if int(judged.sum()) < AGREEMENT_MIN_JUDGED:
+        return None
+    r = np.abs(np.sum(n * (q - p_c), axis=0))
+    return float(np.mean(r[judged] <= tol[judged]))
 
 
 def depth_valid(normals: jnp.ndarray) -> jnp.ndarray:

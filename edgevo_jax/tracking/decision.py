@@ -12,7 +12,8 @@ take the keyframes that moved there (the window's refinements, a loop's correcti
 returns ``Decision(state, result, actions)``, in phases, one short function per rule. Where
 it needs something only a host effect can give, it returns the unchanged state, no result
 and that one action: ``Search`` (the recovery search from other starts and keyframes),
-``Confirm`` (an alignment from a feature start), ``Relocalise`` and ``Revisit`` (the keyframe
+``Confirm`` (an alignment from a feature start), ``Check`` (the second opinion, from two
+depth images), ``Relocalise`` and ``Revisit`` (the keyframe
 map: ``places``, through ``backend``), ``Handover`` (all refinements the window has made,
 waited for) or ``MakeKeyframe`` (edge selection; the back end takes the keyframe). The driver
 (``odometry.Odometry``) carries it out, adds the answer to the evidence
@@ -33,6 +34,11 @@ next frame starts from. The rules (docs/decisions.md), in order:
    keyframe ask the map where it is (``Relocalise``); a verified place makes it OK against
    that keyframe, and a guessed chain it was tracked in moves into the map's frame with it
    (``Tie``);
+   Then the second opinion: a frame tracked and not WEAK whose motion is large, whose
+   solve was searched for, confirmed from features or placed by the map, or that follows a
+   LOST frame, is WEAK
+   when the previous frame's depth points do not lie on its surfaces at its motion from the
+   previous frame (``Check``, ``Config.depth_check_share``);
 5. LOST: the pose is the prediction (finite, a rotation) within ``lost_extrapolate_s`` of
    the last tracked frame or with a motion prior, else the last pose, held; the keyframe stays,
    unless the loss outlasts ``kf_max_interval_s`` (a new keyframe at the guess, guessed);
@@ -45,17 +51,18 @@ This module runs no JAX: each rule is tested with plain numbers (tests/tracking/
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from ..config import Config
+from ..derive import basin_px
 from ..frontend.keyframes import keyframe_reason
 from ..geometry import inverse_np, orthonormalise_np
-from ..hostmem import aligned_array
+from .following import begin_frame, follow, relative_from_world, with_keyframe
 from .records import (
+    Check,
     Confirm,
     Decision,
     Evidence,
@@ -86,57 +93,18 @@ from .verify import (
     weak_reason,
 )
 
-__all__ = ["SHARE_HISTORY", "Confirm", "Decision", "Evidence", "FrameFacts", "Guess",
-           "Handover", "Keyframe", "MakeKeyframe", "Motion", "NewKeyframe", "Placed",
-           "Relocalise", "Revisit", "Search", "Tie", "Timing", "TrackerState", "begin_frame",
-           "decide", "follow", "inlier_share", "lost_reason", "reference_share",
-           "relative_from_world", "under", "weak_reason"]
+__all__ = ["DEPTH_DISAGREES", "SHARE_HISTORY", "Check", "Confirm", "Decision", "Evidence",
+           "FrameFacts", "Guess", "Handover", "Keyframe", "MakeKeyframe", "Motion",
+           "NewKeyframe", "Placed", "Relocalise", "Revisit", "Search", "Tie", "Timing",
+           "TrackerState", "begin_frame", "decide", "follow", "inlier_share", "lost_reason",
+           "reference_share", "relative_from_world", "under", "weak_reason"]
+
+#: how the reason of a frame the second opinion made WEAK begins (``_checked``)
+DEPTH_DISAGREES = "depth disagrees with the previous frame's"
 
 #: a chain made at a guess asks the map at every frame for this long after it began (s): its
 #: place is most likely in view then; after it, at most every ``Config.map_chain_query_s``
 CHAIN_EAGER_S = 1.0
-
-
-# -- keyframes that moved ------------------------------------------------------------------------
-def follow(state: TrackerState, moved: Sequence[Any]) -> TrackerState:
-    """The state with the keyframes that moved in the map's record of poses (each with
-    ``key``, the keyframe's id, and its new ``pose``: a refinement of the window, a loop's
-    correction), in order: each keyframe the state holds takes its new pose; when it is the
-    current keyframe the last two frame poses move with it (their motion relative to it,
-    which the device predicts from, is unchanged). A keyframe the state no longer holds (one
-    a recovery left) is skipped."""
-    for m in moved:
-        kf = next((k for k in (state.keyframe, *state.previous) if k is not None
-                   and k.id == m.key), None)
-        if kf is None:
-            continue
-        motion = state.motion
-        if state.keyframe is not None and kf.id == state.keyframe.id:
-            correction = m.pose @ inverse_np(kf.pose)
-            motion = dataclasses.replace(motion, poses=tuple(correction @ p for p in motion.poses))
-        state = dataclasses.replace(_with_keyframe(state, dataclasses.replace(kf, pose=m.pose)),
-                                    motion=motion)
-    return state
-
-
-def begin_frame(state: TrackerState, moved: Sequence[Any]) -> TrackerState:
-    """Count the frame being concluded, the keyframes that ``moved`` before it followed
-    (``follow``)."""
-    return follow(dataclasses.replace(state, index=state.index + 1), moved)
-
-
-def _with_keyframe(state: TrackerState, kf: Keyframe) -> TrackerState:
-    """``kf`` in place of every record of the same keyframe (current and earlier)."""
-    def swap(k):
-        return kf if k is not None and k.id == kf.id else k
-    return dataclasses.replace(state, keyframe=swap(state.keyframe),
-                               previous=tuple(swap(k) for k in state.previous))
-
-
-def relative_from_world(motion: Motion, kf_pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A, B (float32) from the last two world poses and the keyframe's (float64)."""
-    rel = [aligned_array(inverse_np(p) @ kf_pose, np.float32) for p in motion.poses]
-    return rel[-1], rel[0]
 
 
 # -- the decision: a recipe of phases -----------------------------------------------------------
@@ -171,6 +139,7 @@ class _Step:
     tie: Tie | None = None
     used: int = 0
     made: NewKeyframe | None = None
+    agreement: float | None = None
 
 
 def decide(state: TrackerState, ev: Evidence, config: Config) -> Decision:
@@ -180,7 +149,7 @@ def decide(state: TrackerState, ev: Evidence, config: Config) -> Decision:
     if ev.solve is None:
         return _first(state, ev, config)
     step = _Step(state.keyframe, ev.solve, reference_share(state, config))
-    for phase in (_searched, _judged, _found_again, _moved_on, _handed_over, _posed,
+    for phase in (_searched, _judged, _found_again, _checked, _moved_on, _handed_over, _posed,
                   _revisited, _tied, _keyframed):
         step = phase(state, ev, config, step)
         if not isinstance(step, _Step):  # an action to answer first
@@ -260,6 +229,34 @@ def _found_again(state: TrackerState, ev: Evidence, config: Config, s: _Step
                                lost=None, weak=None)
 
 
+def _checked(state: TrackerState, ev: Evidence, config: Config, s: _Step) -> _Step | Check:
+    """Rule 4b, the second opinion: a tracked frame not WEAK whose motion is large (its
+    edges' RMS optical flow past the alignment's basin, ``derive.basin_px``), whose solve
+    was searched for, confirmed from features or placed by the map, or that follows a LOST
+    frame, is WEAK
+    when too few of the depth points of the last frame not LOST lie on its surfaces at its
+    motion from that frame (``Check``; ``Config.depth_check_share``): the distance field
+    agrees with a wrong pose where edges snap to their neighbours, two depth images do not.
+    (A LOST frame's pose is a guess: no measure of the motion.)"""
+    share, tracked = config.depth_check_share, state.motion.tracked
+    if not (share > 0 and s.lost is None and s.weak is None and tracked is not None):
+        return s
+    after_loss = state.tracked_t is not None and state.motion.times[-1] > state.tracked_t
+    large = float(s.res.flow) > basin_px(config)  # the edges moved past the basin
+    if not (large or after_loss or s.placed is not None or ev.asked(Search)
+            or ev.asked(Confirm)):
+        return s
+    if not ev.asked(Check):
+        T_c_k = orthonormalise_np(np.asarray(s.res.T_c_k, np.float64))
+        return Check(T_c_k @ inverse_np(s.kf.pose) @ tracked)
+    agreement = ev.answer(Check)
+    if agreement is None or agreement >= share:
+        return dataclasses.replace(s, agreement=agreement)
+    return dataclasses.replace(
+        s, agreement=agreement, weak=f"{DEPTH_DISAGREES}: {100 * agreement:.0f} % of its "
+        f"points on the frame's surfaces, under {100 * share:.0f} %")
+
+
 def _moved_on(state: TrackerState, ev: Evidence, config: Config, s: _Step) -> _Step:
     """The state after a tracked frame (its keyframe's inliers counted) and its keyframe
     reason; for a LOST one, the state as it was, and a new keyframe only when the loss
@@ -334,11 +331,12 @@ def _tied(state: TrackerState, ev: Evidence, config: Config, s: _Step) -> _Step:
     driver is asked to tie its chain (``Tie``)."""
     new, tie = s.new, None
     if s.placed is not None:
-        tie = _tie(s.chain_guess or state.keyframe.guess, s.kf.id, s.pose, s.chain)
+        # a LOST frame found on a keyframe the window no longer holds: the window's views are
+        # not the frame's place (below: ``_tie``)
+        far = s.chain is None and s.kf.id < state.num_keyframes - config.window_size
+        tie = _tie(s.chain_guess or state.keyframe.guess, s.kf.id, s.pose, s.chain, far=far)
         new = dataclasses.replace(new, motion=Motion() if s.chain is None else
-                                  dataclasses.replace(new.motion, poses=tuple(
-                                      s.pose @ inverse_np(s.chain) @ p
-                                      for p in new.motion.poses)))
+                                  new.motion.moved(s.pose @ inverse_np(s.chain)))
     return dataclasses.replace(s, new=new, tie=tie, used=new.keyframe.num_edges)
 
 
@@ -377,7 +375,8 @@ def _concluded(state: TrackerState, ev: Evidence, config: Config, s: _Step) -> D
     # a frame tracked in a chain made at a guess that asked the map: the chain's clock
     asked_t = None if s.placed is not None or s.new.keyframe.guess is None else (
         ev.facts.timestamp if s.asked and s.lost is None else state.asked_t)
-    new = dataclasses.replace(s.new, motion=s.new.motion.push(s.pose, ev.facts.timestamp),
+    new = dataclasses.replace(s.new, motion=s.new.motion.push(s.pose, ev.facts.timestamp,
+                                                              tracked=s.lost is None),
                               asked_t=asked_t)
     plain = (s.lost is None and s.kf.id == state.keyframe.id and s.made is None
              and s.res is ev.solve and not ev.intrinsics_moved)
@@ -388,7 +387,7 @@ def _concluded(state: TrackerState, ev: Evidence, config: Config, s: _Step) -> D
     result = _result(ev, s.pose, LOST if lost else (WEAK if s.weak else OK), lost or s.weak,
                      int(res.inliers), None if lost else np.asarray(res.covariance, np.float64),
                      s.reason if s.made else None, s.used, s.made,
-                     None if lost else inlier_share(res), s.placed)
+                     None if lost else inlier_share(res), s.placed, s.agreement)
     return Decision(new, result, (), plain, s.tie)
 
 
@@ -409,7 +408,7 @@ def _tracked(state: TrackerState, kf: Keyframe, res, facts: FrameFacts, config: 
         previous = tuple(k for k in (*state.previous, state.keyframe) if k.id != kf.id)
         return dataclasses.replace(state, keyframe=kf, tracked_t=facts.timestamp, shares=shares,
                                    previous=previous[-config.recovery_keyframes:])
-    return dataclasses.replace(_with_keyframe(state, kf), keyframe=kf, tracked_t=facts.timestamp,
+    return dataclasses.replace(with_keyframe(state, kf), keyframe=kf, tracked_t=facts.timestamp,
                                shares=shares)
 
 
@@ -421,13 +420,17 @@ def _recent(state: TrackerState, config: Config) -> tuple[int, ...]:
     return tuple(sorted(recent))
 
 
-def _tie(guess: Guess | None, key: int, pose: np.ndarray, chain: np.ndarray | None) -> Tie:
+def _tie(guess: Guess | None, key: int, pose: np.ndarray, chain: np.ndarray | None, *,
+         far: bool = False) -> Tie:
     """What the driver does for a frame placed at ``pose`` against the map's keyframe ``key``
     (``Tie``): where the frame came from a chain made at a guess (``guess``), the window
     starts again, and with its pose in that chain (``chain``) the chain moves into the
-    map's frame."""
+    map's frame. A LOST frame found again on a keyframe the window no longer holds
+    (``far``) starts the window again as well: the window's keyframes are from before the
+    loss and see another place, and refined jointly with the ones made after it they
+    moved those by up to 10 cm (docs/decisions.md, "A second opinion from depth")."""
     if guess is None:
-        return Tie(key)
+        return Tie(key, restart=far)
     if chain is None:
         return Tie(key, restart=True)
     return Tie(key, pose @ inverse_np(chain), guess.frame, guess.keyframe, restart=True)
@@ -452,7 +455,8 @@ def _first(state: TrackerState, ev: Evidence, config: Config) -> Decision:
     new, pose, made = state, ev.predicted, ev.answer(MakeKeyframe)
     if made is not None:
         pose, new = made.keyframe.pose, _install(state, made.keyframe, config)
-    new = dataclasses.replace(new, motion=new.motion.push(pose, ev.facts.timestamp))
+    new = dataclasses.replace(new, motion=new.motion.push(pose, ev.facts.timestamp,
+                                                          tracked=made is not None))
     if new.keyframe is not None:
         new = dataclasses.replace(new, motion=dataclasses.replace(
             new.motion, rel=relative_from_world(new.motion, new.keyframe.pose)))
@@ -463,8 +467,8 @@ def _first(state: TrackerState, ev: Evidence, config: Config) -> Decision:
 
 
 def _result(ev: Evidence, pose, state: str, reason, inliers: int, cov, kf_reason, used: int,
-            made: NewKeyframe | None, share: float | None, placed: Placed | None = None
-            ) -> FrameResult:
+            made: NewKeyframe | None, share: float | None, placed: Placed | None = None,
+            agreement: float | None = None) -> FrameResult:
     t = ev.timing
     return FrameResult(
         timestamp=ev.facts.timestamp, pose=pose, state=state, reason=reason, inliers=inliers,
@@ -473,4 +477,4 @@ def _result(ev: Evidence, pose, state: str, reason, inliers: int, cov, kf_reason
         mapping_ms=t.map_ms if t.map_ms is not None and (made or t.map_ms > 0.0) else None,
         preprocess_ms=t.preprocess_ms, solve_ms=t.solve_ms,
         total_ms=t.preprocess_ms + t.elapsed_ms, inlier_share=share,
-        placed=None if placed is None else placed.note)
+        placed=None if placed is None else placed.note, depth_agreement=agreement)

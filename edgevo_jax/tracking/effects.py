@@ -20,7 +20,7 @@ from ..config import Config
 from ..derive import basin_px, solve_knobs, solve_structure
 from ..frontend import selection
 from ..frontend.chunk import track_next_jit
-from ..frontend.depth import depth_points
+from ..frontend.depth import depth_agreement, depth_points
 from ..frontend.features import Detections
 from ..frontend.selection import KeyframeEdges, keyframe_edges
 from ..frontend.shutter import depths_at_colour_time, shutter_rate, unroll_edges
@@ -30,7 +30,16 @@ from ..image.preprocess import Frame, beside
 from ..learn.params import Params, solve_knobs_of
 from ..window.worker import Window
 from . import recovery
-from .decision import Confirm, Keyframe, MakeKeyframe, Search, TrackerState, lost_reason, under
+from .decision import (
+    Check,
+    Confirm,
+    Keyframe,
+    MakeKeyframe,
+    Search,
+    TrackerState,
+    lost_reason,
+    under,
+)
 
 
 class Made(NamedTuple):
@@ -154,6 +163,20 @@ def confirm(solver: Solver, state: TrackerState, frame: Frame, ask: Confirm,
     align, usable = aligner(solver, state, frame, timestamp)
     return recovery.confirm(frame, ask.keyframe, ask.solve, align=align, usable=usable,
                             intrinsics=solver.intrinsics, config=solver.config, found=found)
+
+
+def check(solver: Solver, previous: np.ndarray | None, frame: Frame, ask: Check
+          ) -> float | None:
+    """The second opinion ``ask`` asks for (``frontend.depth.depth_agreement``) between the
+    depth image of the last frame not LOST (``previous``; None: none kept) and ``frame``'s,
+    seeded by
+    the configuration's seed; None where either has no depth image."""
+    if previous is None or frame.depth is None:
+        return None
+    config = solver.config
+    return depth_agreement(previous, frame.depth, ask.T_cur_prev, solver.intrinsics,
+                           tol_m=config.depth_check_tol_m, min_depth=config.min_depth,
+                           max_depth=config.max_depth, seed=config.seed)
 
 
 def make_keyframe(solver: Solver, frame: Frame, ask: MakeKeyframe, found: Detections | None

@@ -29,7 +29,7 @@ from ..learn.params import Params
 from ..programs import enable_cache, release_compiled
 from . import decision
 from .backend import Backend
-from .effects import Made, Solver, confirm, make_keyframe, search, warm_up
+from .effects import Made, Solver, check, confirm, make_keyframe, search, warm_up
 from .inputs import check_frame, increasing, rigid_transform
 from .results import LOST, OK, WEAK, Correction, FrameResult, Refinement
 
@@ -114,6 +114,7 @@ class Odometry:
         self._last_t: float | None = None
         self._in_flight = False
         self._shape: tuple[int, int] | None = None  # (H, W) of the frames seen by ``track``
+        self._tracked_depth: np.ndarray | None = None  # the last frame not LOST, for Check
 
     # -- public -------------------------------------------------------------------------
     def track(self, rgb: np.ndarray, depth: np.ndarray, timestamp: float, *,
@@ -358,6 +359,8 @@ class Odometry:
             if not d.actions:
                 before, self.state = self.state, d.state
                 self._backend.concluded(d, job.made, frame, before)
+                if d.result.state != LOST:
+                    self._tracked_depth = frame.depth
                 return d.result, d.plain
             action = d.actions[0]
             ev = ev.answered(action, self._act(action, job))
@@ -379,6 +382,8 @@ class Odometry:
                           p.prior, job.found)
         if isinstance(action, decision.Confirm):
             return confirm(self._solver, state, p.frame, action, p.timestamp, job.found)
+        if isinstance(action, decision.Check):
+            return check(self._solver, self._tracked_depth, p.frame, action)
         if isinstance(action, decision.Handover):
             return tuple(backend.handover(state.index - 1))
         if isinstance(action, decision.Relocalise):

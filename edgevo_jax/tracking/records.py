@@ -68,12 +68,15 @@ class Keyframe:
 
 @dataclass(frozen=True)
 class Motion:
-    """The last (at most two) frames' T_world_cam and timestamps, oldest first, and the
-    device's inputs for the next prediction: A = T_(i-1)_kf, B = T_(i-2)_kf (float32)."""
+    """The last (at most two) frames' T_world_cam and timestamps, oldest first, the
+    device's inputs for the next prediction: A = T_(i-1)_kf, B = T_(i-2)_kf (float32), and
+    ``tracked``: T_world_cam of the last frame not LOST (None: none since the motion began),
+    which the second opinion compares a frame with."""
 
     poses: tuple[np.ndarray, ...] = ()
     times: tuple[float, ...] = ()
     rel: tuple[np.ndarray, np.ndarray] | None = None
+    tracked: np.ndarray | None = None
 
     def predict(self, prior: np.ndarray | None = None) -> np.ndarray:
         """The next T_world_cam: T_w_last @ prior (prior = T_prev_cur), else constant velocity
@@ -84,9 +87,17 @@ class Motion:
             return self.poses[-1]
         return predict_np(self.poses[1], self.poses[0])
 
-    def push(self, pose: np.ndarray, timestamp: float) -> Motion:
-        """The motion with a frame at ``pose``, ``timestamp`` added (the oldest dropped)."""
-        return Motion((*self.poses, pose)[-2:], (*self.times, timestamp)[-2:], self.rel)
+    def push(self, pose: np.ndarray, timestamp: float, *, tracked: bool = True) -> Motion:
+        """The motion with a frame at ``pose``, ``timestamp`` added (the oldest dropped);
+        ``tracked``: the frame is not LOST."""
+        return Motion((*self.poses, pose)[-2:], (*self.times, timestamp)[-2:], self.rel,
+                      pose if tracked else self.tracked)
+
+    def moved(self, correction: np.ndarray) -> Motion:
+        """The motion with its poses moved by ``correction`` (T_world_new_world_old)."""
+        return dataclasses.replace(
+            self, poses=tuple(correction @ p for p in self.poses),
+            tracked=None if self.tracked is None else correction @ self.tracked)
 
 
 @dataclass(frozen=True)
@@ -142,6 +153,16 @@ class Confirm(NamedTuple):
     solve: Any
 
 
+class Check(NamedTuple):
+    """The second opinion: the share of the depth points of the last frame not LOST that the
+    frame's depth puts on their surfaces at ``T_cur_prev`` (4, 4; p_cur = T p_prev), the
+    frame's motion from that frame as decided (``frontend.depth.depth_agreement``). The
+    answer is that share, or None where it cannot be judged (no depth on either side, too
+    little in view)."""
+
+    T_cur_prev: np.ndarray
+
+
 class Relocalise(NamedTuple):
     """Find the frame in the keyframe map (``places.Places.relocalise``): place recognition over
     its anchored keyframes and those a camera at ``guess`` (T_world_cam; None: none) would
@@ -176,7 +197,7 @@ class Tie(NamedTuple):
     the decision: ``correction`` (T_world_new_world_old (4, 4), or None) moves the frames
     from index ``since`` on and the keyframes of the guessed chain from id ``guessed`` on
     (None: none) into the map's frame; ``restart``: the window starts again (it holds
-    keyframes of a guessed chain, whose frame is not the map's)."""
+    keyframes of a guessed chain, whose frame is not the map's, or from before a loss)."""
 
     keyframe: int
     correction: np.ndarray | None = None
@@ -216,9 +237,9 @@ class Evidence:
     its motion prior T_prev_cur, if given; ``intrinsics_moved``: the window's intrinsics were
     taken in this frame. ``answers``: (action type, answer) pairs, one per action asked
     (``answered``, ``asked``, ``answer``): ``Search`` a ``recovery.Found`` or None,
-    ``Confirm`` a bool, ``Handover`` the window's refinements (``window.worker.Refined``),
-    ``Relocalise`` and ``Revisit`` a ``Placed`` or None, ``MakeKeyframe`` a ``NewKeyframe``
-    or None."""
+    ``Confirm`` a bool, ``Check`` a share or None, ``Handover`` the window's refinements
+    (``window.worker.Refined``), ``Relocalise`` and ``Revisit`` a ``Placed`` or None,
+    ``MakeKeyframe`` a ``NewKeyframe`` or None."""
 
     facts: FrameFacts
     solve: Any

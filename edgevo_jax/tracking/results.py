@@ -27,8 +27,10 @@ class FrameResult:
     from dispatch to read-back; total); ``inlier_share``: the level-0 inliers per keyframe
     edge in view (None for the first frame and LOST ones); ``placed``: how the keyframe map
     placed the frame, when it did (found again after a loss or a guess, or an older keyframe
-    taking over on a revisit; None otherwise). A keyframe's pose is the window's refined
-    one."""
+    taking over on a revisit; None otherwise); ``depth_agreement``: the second opinion's
+    share of the previous frame's depth points on the frame's surfaces at its pose (None
+    where the frame was not checked or could not be: ``Config.depth_check_share``). A
+    keyframe's pose is the window's refined one."""
 
     timestamp: float
     pose: np.ndarray
@@ -45,6 +47,7 @@ class FrameResult:
     total_ms: float
     inlier_share: float | None = None
     placed: str | None = None
+    depth_agreement: float | None = None
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ import pytest
 from edgevo_jax import Config
 from edgevo_jax.tracking.decision import (
     SHARE_HISTORY,
+    Check,
     Confirm,
     Evidence,
     FrameFacts,
@@ -68,11 +69,13 @@ def solve(share: float = 0.9, *, visible: int = 200, moved: float = 2.0, flow: f
                  float(visible), moved, flow, 0.0, mean_residual)
 
 
-def state(*, shares=(0.9,), tracked_t: float | None = 0.9, kf_t: float = 0.5,
+def state(*, shares=(0.9,), tracked_t: float | None = 0.95, kf_t: float = 0.5,
           previous=(), counts=(180,)) -> TrackerState:
     kf = Keyframe(3, kf_t, np.eye(4), 200, tuple(counts))
     poses = (shift(-0.02), shift(-0.03))
-    motion = Motion(poses, (0.9, 0.95), (np.eye(4, dtype=np.float32),) * 2)
+    # the last frame not LOST: the one at 0.95 s where it was tracked, else the one before
+    tracked = poses[-1] if tracked_t is not None and tracked_t >= 0.95 else poses[0]
+    motion = Motion(poses, (0.9, 0.95), (np.eye(4, dtype=np.float32),) * 2, tracked)
     return TrackerState(kf, tuple(previous), motion, tuple(shares), tracked_t, index=10,
                         num_keyframes=4)
 
@@ -88,13 +91,13 @@ def made(ask: MakeKeyframe, *, pose: np.ndarray | None = None) -> NewKeyframe:
 
 def conclude(st: TrackerState, res, fa: FrameFacts, *, found="unused", confirmed=None,
              handover=(), make=made, predicted=None, moved_intrinsics=False, prior=None,
-             config=CFG, placed="unused", revisited="unused"):
+             config=CFG, placed="unused", revisited="unused", checked=None):
     """Run the decision as the driver does, answering its actions; the actions asked (by
     type), the final decision."""
     ev = Evidence(fa, res, st.motion.predict(prior) if predicted is None else predicted,
                   prior=prior, intrinsics_moved=moved_intrinsics)
     asked = []
-    for _ in range(6):
+    for _ in range(7):
         d = decide(st, ev, config)
         assert d.state is st or not d.actions
         if not d.actions:
@@ -109,6 +112,8 @@ def conclude(st: TrackerState, res, fa: FrameFacts, *, found="unused", confirmed
             answer = confirmed
         elif isinstance(action, Handover):
             answer = tuple(handover)
+        elif isinstance(action, Check):
+            answer = checked(st, action) if callable(checked) else checked
         elif isinstance(action, Relocalise):
             assert placed != "unused", "a map query nobody expected"
             answer = placed(st, action) if callable(placed) else placed
@@ -119,7 +124,24 @@ def conclude(st: TrackerState, res, fa: FrameFacts, *, found="unused", confirmed
             assert isinstance(action, MakeKeyframe)
             answer = make(action) if make else None
         ev = ev.answered(action, answer)
-    raise AssertionError(f"the decision asked for more than five actions: {asked}")
+    raise AssertionError(f"the decision asked for more than six actions: {asked}")
+
+
+def test_the_second_opinion_compares_with_the_last_frame_not_lost():
+    """After a LOST frame (held at a guess) the check measures the motion from the frame
+    before it, the last one tracked: T_cur_prev = T_cur_kf T_world_kf^-1 T_world_tracked."""
+    asks = []
+
+    def check(st, action):
+        asks.append(action)
+        return 0.9
+
+    s0 = state(tracked_t=0.9)  # the frame at 0.95 s was LOST
+    asked, d = conclude(s0, solve(T=shift(0.01)), facts(), checked=check)
+    assert asked == [Check] and d.result.state == "OK" and d.result.depth_agreement == 0.9
+    expected = shift(0.01) @ np.linalg.inv(s0.keyframe.pose) @ s0.motion.poses[0]
+    np.testing.assert_allclose(asks[0].T_cur_prev, expected, atol=1e-12)
+    assert d.state.motion.tracked is d.state.motion.poses[-1]  # this frame, tracked
 
 
 def keep_first(st, action):  # the search found nothing better than the first solve
@@ -144,31 +166,46 @@ CASES = [
      {"share": 0.4}, {}, {"found": keep_first}, [Search, Handover], "LOST", "from every start",
      None),
     ("no share seen yet: every start is tried", {"shares": ()}, {}, {},
-     {"found": keep_first}, [Search], "OK", None, None),
+     {"found": keep_first}, [Search, Check], "OK", None, None),
     ("mean residual over half the gate: WEAK", {}, {"mean_residual": 3.0}, {}, {}, [],
      "WEAK", "mean residual 3.00 px over half the gate", None),
     ("no depth: WEAK", {}, {}, {"depth": False}, {}, [], "WEAK", "no depth", None),
     ("moved past the basin, confirmed by features: OK", {}, {"moved": 45.0}, {},
-     {"confirmed": True}, [Confirm], "OK", None, None),
+     {"confirmed": True}, [Confirm, Check], "OK", None, None),
     ("moved past the basin, not confirmed: WEAK", {}, {"moved": 45.0}, {},
      {"confirmed": False}, [Confirm], "WEAK", "moved 45 px from its start, past the 20 px basin",
      None),
     ("0.33 s after the last tracked frame, confirmed by features: OK", {"tracked_t": 0.67},
-     {}, {}, {"confirmed": True}, [Confirm], "OK", None, None),
+     {}, {}, {"confirmed": True}, [Confirm, Check], "OK", None, None),
     ("0.33 s after the last tracked frame, not confirmed: WEAK", {"tracked_t": 0.67}, {}, {},
      {"confirmed": False}, [Confirm], "WEAK",
      "0.33 s after the last tracked frame, not confirmed by features", None),
-    ("0.1 s after the last tracked frame: OK without asking", {"tracked_t": 0.9}, {}, {}, {},
+    ("0.05 s after the last tracked frame: OK without asking", {}, {}, {}, {},
      [], "OK", None, None),
+    ("0.1 s after the last tracked frame, the one before LOST: the second opinion asked",
+     {"tracked_t": 0.9}, {}, {}, {}, [Check], "OK", None, None),
     ("moved past the basin, the search confirmed it: OK without asking", {"shares": ()},
-     {"moved": 45.0}, {}, {"found": lambda st, a: (st.keyframe, a.first, True)}, [Search],
-     "OK", None, None),
-    ("flow: a new keyframe on refined poses", {}, {"flow": 60.0}, {}, {},
-     [Handover, MakeKeyframe], "OK", None, "flow"),
+     {"moved": 45.0}, {}, {"found": lambda st, a: (st.keyframe, a.first, True)},
+     [Search, Check], "OK", None, None),
+    ("searched, the depth images agree: OK", {"shares": ()}, {}, {},
+     {"found": keep_first, "checked": 0.95}, [Search, Check], "OK", None, None),
+    ("searched, the depth images disagree: WEAK", {"shares": ()}, {}, {},
+     {"found": keep_first, "checked": 0.3}, [Search, Check], "WEAK",
+     "depth disagrees with the previous frame's: 30 % of its points", None),
+    ("confirmed by features, the depth images disagree: WEAK", {}, {"moved": 45.0}, {},
+     {"confirmed": True, "checked": 0.5}, [Confirm, Check], "WEAK", "depth disagrees", None),
+    ("after a LOST frame, the depth images disagree: WEAK", {"tracked_t": 0.9}, {}, {},
+     {"checked": 0.5}, [Check], "WEAK", "depth disagrees", None),
+    ("tracked plainly after a tracked frame: no second opinion asked", {}, {}, {},
+     {"checked": 0.0}, [], "OK", None, None),
+    ("flow: a new keyframe on refined poses (large motion: the second opinion asked)", {},
+     {"flow": 60.0}, {}, {}, [Check, Handover, MakeKeyframe], "OK", None, "flow"),
+    ("large motion, the depth images disagree: WEAK", {}, {"flow": 60.0}, {},
+     {"checked": 0.2}, [Check, Handover, MakeKeyframe], "WEAK", "depth disagrees", "flow"),
     ("interval: a new keyframe", {"kf_t": 0.0}, {}, {"t": 1.0}, {}, [Handover, MakeKeyframe],
      "OK", None, "interval"),
     ("the keyframe's selection finds too few edges: the old one stays", {}, {"flow": 60.0}, {},
-     {"make": None}, [Handover, MakeKeyframe], "OK", None, None),
+     {"make": None}, [Check, Handover, MakeKeyframe], "OK", None, None),
     ("LOST within the keyframe interval: the keyframe stays", {}, {"share": 0.05}, {},
      {"found": None}, [Search, Handover], "LOST", "too few inliers", None),
     ("LOST past the keyframe interval: a keyframe at the guess", {"tracked_t": 0.0},
@@ -357,15 +394,28 @@ def on_old(share: float = 0.9, note: str = "found again: keyframe 1") -> Placed:
 def test_a_lost_frame_asks_the_map_and_a_verified_place_makes_it_ok():
     s0 = state()
     asked, d = conclude(s0, solve(0.05), facts(), found=None, config=MAP, placed=on_old())
-    assert asked == [Search, Relocalise]
+    assert asked == [Search, Relocalise, Check]  # placed: the second opinion asked too
     assert d.result.state == "OK" and d.result.placed == "found again: keyframe 1"
     np.testing.assert_allclose(d.result.pose, shift(0.5, z=0.01), atol=1e-12)
     assert d.state.keyframe.id == 1 and d.state.keyframe.since == 1.0
     assert d.state.previous[-1].id == s0.keyframe.id  # the old current joins recovery's
     assert d.tie is not None and d.tie.keyframe == 1 and d.tie.correction is None
-    assert not d.tie.restart
+    assert not d.tie.restart  # keyframe 1 is among the window's (the last window_size made)
     assert len(d.state.motion.poses) == 1  # no velocity across the jump
     assert not d.plain
+
+
+def test_a_lost_frame_found_on_a_keyframe_the_window_left_starts_the_window_again():
+    """The window's keyframes are from before the loss and see another place: refined
+    jointly across the loss they moved the next keyframes (docs/decisions.md)."""
+    s0 = dataclasses.replace(state(), num_keyframes=4 + MAP.window_size)
+    asked, d = conclude(s0, solve(0.05), facts(), found=None, config=MAP, placed=on_old())
+    assert d.result.state == "OK" and d.tie.keyframe == 1 and d.tie.restart
+    assert d.tie.correction is None
+    # a frame tracked in a tied chain that the map placed (a doubted one): no restart
+    asked, d = conclude(s0, solve(0.9, moved=100.0), facts(), config=MAP, confirmed=False,
+                        placed=on_old())
+    assert asked[:2] == [Confirm, Relocalise] and d.tie is not None and not d.tie.restart
 
 
 def test_a_keyframe_made_where_the_map_placed_a_frame_reads_no_velocity_across_the_jump():
@@ -380,8 +430,8 @@ def test_a_keyframe_made_where_the_map_placed_a_frame_reads_no_velocity_across_t
     placed = Placed(OLD, solve(0.9, T=shift(z=-0.01), flow=60.0), "found again: keyframe 1")
     asked, d = conclude(state(), solve(0.05), facts(), found=None, config=MAP, placed=placed,
                         make=make, handover=())
-    assert asked == [Search, Relocalise, Handover, MakeKeyframe] and d.result.state == "OK"
-    assert asks[0].motion.poses == ()
+    assert asked == [Search, Relocalise, Check, Handover, MakeKeyframe]
+    assert d.result.state == "OK" and asks[0].motion.poses == ()
     np.testing.assert_allclose(asks[0].pose, shift(0.5, z=0.01), atol=1e-12)
 
 
@@ -453,7 +503,7 @@ def test_a_revisit_hands_the_frame_to_an_older_keyframe_instead_of_a_new_one():
     s0 = state()
     asked, d = conclude(s0, solve(0.9, flow=60.0), facts(), config=MAP,
                         revisited=on_old(0.9, "revisit: keyframe 1 takes over"))
-    assert asked == [Handover, Revisit]
+    assert asked == [Check, Handover, Revisit]  # a large motion: the second opinion too
     assert d.result.keyframe is None and d.state.num_keyframes == s0.num_keyframes
     assert d.state.keyframe.id == 1 and d.result.placed.startswith("revisit")
     np.testing.assert_allclose(d.result.pose, shift(0.5, z=0.01), atol=1e-12)
@@ -464,7 +514,7 @@ def test_a_revisit_hands_the_frame_to_an_older_keyframe_instead_of_a_new_one():
     np.testing.assert_allclose(v1, v0, atol=1e-12)
     # nothing takes over: the new keyframe as before; the ids a revisit leaves out
     asked, d = conclude(s0, solve(0.9, flow=60.0), facts(), config=MAP, revisited=None)
-    assert asked == [Handover, Revisit, MakeKeyframe] and d.result.keyframe == "flow"
+    assert asked == [Check, Handover, Revisit, MakeKeyframe] and d.result.keyframe == "flow"
 
 
 def test_the_map_off_asks_nothing_of_it():
