@@ -39,8 +39,10 @@ from ..io import TrajectoryWriter, matrices_to_poses7, poses7_to_matrices
 from ..learn.params import Params
 from ..metrics import ate, rpe_per_second
 from ..programs import enable_cache
+from ..tracking.decision import DEPTH_DISAGREES
 from ..tracking.odometry import Odometry
 from ..tracking.results import LOST, OK, WEAK, Correction, FrameResult, FrameResults
+from .truth import DIVERGED_ROT_DEG, DIVERGED_TRANS_M, groundtruth_at, silently_wrong
 
 
 @dataclass
@@ -373,17 +375,24 @@ def _record(run: RunResult, result: FrameResult, writer: TrajectoryWriter | None
 
 def summarise(run: FrameResults, seq: Source) -> dict:
     """A run's statistics (the CLI's ``--stats`` JSON; one row of ``edgevo batch``): counts
-    of frames, keyframes, lost and weak frames and their reasons, the run's own fields
+    of frames, keyframes, OK, lost and weak frames and their reasons, the second opinion's
+    (``second_opinion``: frames checked, and those it made WEAK), the run's own fields
     (``RunResult``: timings; ``BatchRun``: its configuration's index), the configuration,
-    and ATE / RPE against the sequence's ground truth when it has one."""
+    and against the sequence's ground truth when it has one: ATE / RPE and the frames
+    called OK while silently wrong (``silently_wrong``: indices; ``truth.silently_wrong``)."""
+    results = run.results
     stats: dict = {
         "sequence": seq.name,
-        "frames": len(run.results),
+        "frames": len(results),
         "keyframes": run.num_keyframes,
-        "lost": sum(r.state == LOST for r in run.results),
-        "weak": sum(r.state == WEAK for r in run.results),
-        "flags": dict(Counter(f"{r.state}: {r.reason}" for r in run.results
-                              if r.state != OK)),
+        "ok": sum(r.state == OK for r in results),
+        "lost": sum(r.state == LOST for r in results),
+        "weak": sum(r.state == WEAK for r in results),
+        "flags": dict(Counter(f"{r.state}: {r.reason}" for r in results if r.state != OK)),
+        "second_opinion": {
+            "checked": sum(r.depth_agreement is not None for r in results),
+            "weak": sum(r.state == WEAK and r.reason is not None
+                        and r.reason.startswith(DEPTH_DISAGREES) for r in results)},
         **run.summary_fields(),
         "config": dataclasses.asdict(run.config) if run.config is not None else None,
     }
@@ -397,6 +406,9 @@ def summarise(run: FrameResults, seq: Source) -> dict:
             r = rpe_per_second((gt_t, gt_p), (run.timestamps, est))
             stats["rpe_rmse_m_per_s"] = r["trans_rmse_m_per_s"]
             stats["rpe_rmse_deg_per_s"] = r["rot_rmse_deg_per_s"]
+            stats["silently_wrong"] = silently_wrong(
+                run.poses, [r.state for r in results], groundtruth_at(seq, run.timestamps))
+            stats["silently_wrong_bounds"] = {"m": DIVERGED_TRANS_M, "deg": DIVERGED_ROT_DEG}
         except ValueError as err:  # e.g. no timestamps in common with the ground truth
             stats["ground_truth_note"] = str(err)
     return stats

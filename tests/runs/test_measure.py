@@ -1,6 +1,7 @@
 """edgevo_jax.runs.measure: clips at a frame step, a peer's run from edgevo's first pose,
 accuracy with its notes, statistics over warm frames and over seeds, ground truth at frame
-times, and the silently diverged frames (on synthetic trajectories with injected jumps)."""
+times, and the silently diverged frames (on synthetic trajectories with injected jumps), and
+a run's statistics of them."""
 
 from __future__ import annotations
 
@@ -11,10 +12,13 @@ import numpy as np
 import pytest
 
 from edgevo_jax.cli import BUNDLED_CLIP
+from edgevo_jax.datasets import load_sequence
 from edgevo_jax.geometry import inverse_np
 from edgevo_jax.io import matrices_to_poses7
 from edgevo_jax.runs import measure
-from edgevo_jax.runs.run import initial_pose
+from edgevo_jax.runs.run import initial_pose, summarise
+from edgevo_jax.tracking.decision import DEPTH_DISAGREES
+from edgevo_jax.tracking.results import FrameResult, FrameResults
 
 
 def _rot(axis: str, deg: float) -> np.ndarray:
@@ -206,3 +210,29 @@ def test_run_peer_starts_at_edgevos_first_pose(monkeypatch) -> None:
     for pose in track.poses:
         np.testing.assert_allclose(pose, initial_pose(seq))
     assert len(measure.run_peer("cv2_rgb", seq).frame_ms) == len(seq)
+
+
+def test_a_runs_stats_count_the_second_opinion_and_the_silently_wrong() -> None:
+    """``summarise``: frames OK / WEAK / LOST, the frames the second opinion checked and
+    those it made WEAK, and with ground truth the OK frames silently wrong (indices)."""
+    seq = load_sequence(BUNDLED_CLIP)
+    gt = measure.groundtruth_at(seq, seq.timestamps)
+    poses = gt.copy()
+    poses[4:] = _trans(0.06, 0.0, 0.0) @ poses[4:]  # frame 4 jumps 6 cm, the rest follow it
+
+    def result(i: int, state: str = "OK", reason: str | None = None,
+               agreement: float | None = None) -> FrameResult:
+        return FrameResult(float(seq.timestamps[i]), poses[i], state, reason, 100, None, None,
+                           0, None, None, 0.0, 0.0, 0.0, depth_agreement=agreement)
+
+    class Run(FrameResults):
+        config, num_keyframes = None, 1
+        results = [result(0), result(1, agreement=0.9),
+                   result(2, "WEAK", f"{DEPTH_DISAGREES}: 30 %", 0.3),
+                   result(3, "LOST", "too few inliers"),
+                   *(result(i) for i in range(4, len(seq)))]
+
+    stats = summarise(Run(), seq)
+    assert stats["ok"] == len(seq) - 2 and stats["weak"] == 1 and stats["lost"] == 1
+    assert stats["second_opinion"] == {"checked": 2, "weak": 1}
+    assert stats["silently_wrong"] == [4]
