@@ -13,9 +13,9 @@ returns ``Decision(state, result, actions)``, in phases, one short function per 
 it needs something only a host effect can give, it returns the unchanged state, no result
 and that one action: ``Search`` (the recovery search from other starts and keyframes),
 ``Confirm`` (an alignment from a feature start), ``Check`` (the second opinion, from two
-depth images), ``Relocalise`` and ``Revisit`` (the keyframe
-map: ``places``, through ``backend``), ``Handover`` (all refinements the window has made,
-waited for) or ``MakeKeyframe`` (edge selection; the back end takes the keyframe). The driver
+depth images), ``Relocalise`` and ``Revisit`` (the keyframe map: ``places``, through
+``backend``), ``Handover`` (all refinements the window has made, waited for) or
+``MakeKeyframe`` (edge selection; the back end takes the keyframe). The driver
 (``odometry.Odometry``) carries it out, adds the answer to the evidence
 (``Evidence.answered``) and calls again; each action is asked for at most once per frame.
 With every answer in, the result is the frame's ``FrameResult`` and the state is the one the
@@ -34,11 +34,10 @@ next frame starts from. The rules (docs/decisions.md), in order:
    keyframe ask the map where it is (``Relocalise``); a verified place makes it OK against
    that keyframe, and a guessed chain it was tracked in moves into the map's frame with it
    (``Tie``);
-   Then the second opinion: a frame tracked and not WEAK whose motion is large, whose
+   then the second opinion: a frame tracked and not WEAK whose motion is large, whose
    solve was searched for, confirmed from features or placed by the map, or that follows a
-   LOST frame, is WEAK
-   when the previous frame's depth points do not lie on its surfaces at its motion from the
-   previous frame (``Check``, ``Config.depth_check_share``);
+   LOST frame, is WEAK when the depth points of the last frame not LOST do not lie on its
+   surfaces at its motion from that frame (``Check``, ``Config.depth_check_share``);
 5. LOST: the pose is the prediction (finite, a rotation) within ``lost_extrapolate_s`` of
    the last tracked frame or with a motion prior, else the last pose, held; the keyframe stays,
    unless the loss outlasts ``kf_max_interval_s`` (a new keyframe at the guess, guessed);
@@ -233,11 +232,10 @@ def _checked(state: TrackerState, ev: Evidence, config: Config, s: _Step) -> _St
     """Rule 4b, the second opinion: a tracked frame not WEAK whose motion is large (its
     edges' RMS optical flow past the alignment's basin, ``derive.basin_px``), whose solve
     was searched for, confirmed from features or placed by the map, or that follows a LOST
-    frame, is WEAK
-    when too few of the depth points of the last frame not LOST lie on its surfaces at its
-    motion from that frame (``Check``; ``Config.depth_check_share``): the distance field
-    agrees with a wrong pose where edges snap to their neighbours, two depth images do not.
-    (A LOST frame's pose is a guess: no measure of the motion.)"""
+    frame, is WEAK when too few of the depth points of the last frame not LOST lie on its
+    surfaces at its motion from that frame (``Check``; ``Config.depth_check_share``): the
+    distance field agrees with a wrong pose where edges snap to their neighbours, two depth
+    images do not. (A LOST frame's pose is a guess: no measure of the motion.)"""
     share, tracked = config.depth_check_share, state.motion.tracked
     if not (share > 0 and s.lost is None and s.weak is None and tracked is not None):
         return s
