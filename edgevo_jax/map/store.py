@@ -257,6 +257,17 @@ class KeyframeMap:
             if not kf.anchored:
                 self._link(key)
 
+    def covisible_as(self, key: int, weights: dict[int, float]) -> None:
+        """Keyframe ``key``'s covisibility set to ``weights`` (other id -> weight, both ways),
+        as a saved map had it (``archive``): the weights ``add`` takes from the poses of the
+        moment a keyframe joins, which later refinements move."""
+        for other in list(self._covisible[key]):
+            self._covisible[other].pop(key, None)
+        self._covisible[key] = {}
+        for other, weight in weights.items():
+            self._covisible[key][int(other)] = float(weight)
+            self._covisible[int(other)][key] = float(weight)
+
     def covisible(self, key: int) -> dict[int, float]:
         """Keyframes that see the scene of keyframe ``key``: id -> covisibility (0-1, the
         smaller of the two predicted overlaps when the later one joined)."""

@@ -1,0 +1,132 @@
+"""map.archive: a keyframe map saved and loaded back the same, bit for bit; every file that
+does not fit (not a map, another version, truncated, corrupt, another camera or settings)
+refused with a MapFileError naming the problem; a failed save leaves the old file."""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from edgevo_jax import Config
+from edgevo_jax.cli import BUNDLED_CLIP
+from edgevo_jax.datasets import load_sequence
+from edgevo_jax.map import archive
+from edgevo_jax.map.archive import MapFileError, load_map, read_header, save_map
+from edgevo_jax.runs.run import run_sequence
+
+SETTINGS = {"edge_slots": 2048, "fern_seed": 0}
+
+
+@pytest.fixture(scope="module")
+def made(tmp_path_factory):
+    """The bundled clip's keyframe map, saved once: (sequence, map, file)."""
+    seq = load_sequence(BUNDLED_CLIP)
+    kept = {}
+    run_sequence(seq, Config(), progress=False,
+                 on_frame=lambda result, rgb, frame, odo: kept.__setitem__("odo", odo))
+    odo = kept["odo"]
+    odo.finish()
+    kmap = odo.keyframe_map
+    path = tmp_path_factory.mktemp("map") / "bundled.npz"
+    save_map(path, kmap, settings=SETTINGS, library="test")
+    return seq, kmap, path
+
+
+def load(path, seq, **kw):
+    return load_map(path, intrinsics=kw.pop("intrinsics", seq.intrinsics),
+                    shape=kw.pop("shape", (seq.height, seq.width)),
+                    settings=kw.pop("settings", SETTINGS), max_keyframes=100, **kw)
+
+
+def test_a_map_saved_and_loaded_is_the_same_and_saves_to_the_same_bytes(made, tmp_path):
+    seq, kmap, path = made
+    back = load(path, seq)
+    assert back.ids == kmap.ids and len(back) >= 2
+    for key in kmap.ids:
+        a, b = kmap[key], back[key]
+        np.testing.assert_array_equal(a.pose, b.pose)
+        assert a.timestamp == b.timestamp and a.anchored == b.anchored and a.share == b.share
+        assert (a.code is None) == (b.code is None)
+        if a.code is not None:
+            np.testing.assert_array_equal(a.code, b.code)
+        for x, y in zip(a.edges, b.edges, strict=True):
+            assert (x is None) == (y is None)
+            if x is not None:
+                np.testing.assert_array_equal(np.asarray(x), y)
+        np.testing.assert_array_equal(a.points, b.points)
+        assert kmap.covisible(key) == back.covisible(key)
+    again = tmp_path / "again.npz"
+    save_map(again, back, settings=SETTINGS, library="test")
+    assert again.read_bytes() == path.read_bytes()
+    header = read_header(path)
+    assert header["keyframes"] == len(kmap) and header["version"] == archive.VERSION
+
+
+def test_files_that_are_no_map_or_damaged_are_refused_by_name(made, tmp_path):
+    seq, _, path = made
+    data = path.read_bytes()
+    cases = {
+        "missing.npz": (None, "no such map file"),
+        "text.npz": (b"not a map at all", "truncated or corrupt"),
+        "truncated.npz": (data[: len(data) // 2], "truncated or corrupt"),
+    }
+    corrupt = bytearray(data)
+    corrupt[len(data) // 3: len(data) // 3 + 64] = b"\xff" * 64  # inside an array's bytes
+    cases["corrupt.npz"] = (bytes(corrupt), "truncated or corrupt|cannot be read|header")
+    for name, (content, words) in cases.items():
+        target = tmp_path / name
+        if content is not None:
+            target.write_bytes(content)
+        with pytest.raises(MapFileError, match=words) as err:
+            load(target, seq)
+        assert str(target) in str(err.value)
+    other = tmp_path / "other.npz"
+    np.savez(other, something=np.zeros(3))
+    with pytest.raises(MapFileError, match="no 'header' array"):
+        load(other, seq)
+
+
+def rewritten(path: Path, out: Path, **changes) -> Path:
+    """The map at ``path`` with its header's keys changed."""
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    header = json.loads(bytes(arrays["header"]).decode())
+    header.update(changes)
+    arrays["header"] = np.frombuffer(json.dumps(header).encode(), np.uint8)
+    np.savez(out, **arrays)
+    return out
+
+
+def test_another_version_camera_or_settings_is_refused_before_any_keyframe(made, tmp_path):
+    seq, _, path = made
+    with pytest.raises(MapFileError, match="format version 2"):
+        load(rewritten(path, tmp_path / "v2.npz", version=2), seq)
+    with pytest.raises(MapFileError, match="not an edgevo map file"):
+        load(rewritten(path, tmp_path / "fmt.npz", format="something"), seq)
+    other = seq.intrinsics._replace(fx=seq.intrinsics.fx + 5.0)
+    with pytest.raises(MapFileError, match="another camera"):
+        load(path, seq, intrinsics=other)
+    with pytest.raises(MapFileError, match="640x480 images, this run's are 320x240"):
+        load(path, seq, shape=(240, 320))
+    with pytest.raises(MapFileError, match="edge_slots 2048 in the map, 1024 here"):
+        load(path, seq, settings={**SETTINGS, "edge_slots": 1024})
+
+
+def test_a_failed_save_leaves_the_old_file_and_no_litter(made, tmp_path, monkeypatch):
+    seq, kmap, path = made
+    target = tmp_path / "kept.npz"
+    target.write_bytes(path.read_bytes())
+
+    def broken(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(archive.np, "savez", broken)
+    with pytest.raises(OSError, match="disk full"):
+        save_map(target, kmap, settings=SETTINGS, library="test")
+    assert target.read_bytes() == path.read_bytes()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["kept.npz"]
+    assert zipfile.is_zipfile(target)
