@@ -14,10 +14,12 @@ STARTED = time.perf_counter()  # the command's start (the start-up it reports co
 from ..datasets import BUNDLED_CLIP  # noqa: E402  (re-exported: tests, notebooks)
 from . import batch, calibrate, plot, run  # noqa: E402
 from . import eval as eval_  # noqa: E402
+from . import map as map_  # noqa: E402
 from .eval import ALIGN_CHOICES, DELTA_UNIT_CHOICES  # noqa: E402
 
-# One module per subcommand (run, calibrate, batch, eval, plot), each with add_parser(sub) and
-# command(args); this module assembles the parser and turns errors into exit codes.
+# One module per subcommand (run, calibrate, batch, eval, plot, map), each with
+# add_parser(sub) and command(args); this module assembles the parser and turns errors into
+# exit codes.
 # Heavy imports (JAX, OpenCV, the pipeline) wait inside the commands, so that
 # `edgevo --help` and argument errors are quick.
 
@@ -29,7 +31,7 @@ def _parser() -> argparse.ArgumentParser:
         prog="edgevo", description="Edge-based RGB-D visual odometry (EdgeVO) in JAX."
     )
     sub = p.add_subparsers(dest="command", required=True)
-    for module in (run, calibrate, batch, eval_, plot):  # the order `edgevo --help` lists
+    for module in (run, calibrate, batch, eval_, plot, map_):  # the order `edgevo --help` lists
         module.add_parser(sub)
     return p
 
@@ -52,6 +54,8 @@ def main(argv: list[str] | None = None, *, started: float | None = None) -> int:
             return plot.command(args)
         if args.command == "batch":
             return batch.command(args)
+        if args.command == "map":
+            return map_.command(args)
         return eval_.command(args)
     except (FileNotFoundError, ValueError, ImportError) as err:
         print(f"edgevo: error: {err}", file=sys.stderr)

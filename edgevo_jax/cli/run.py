@@ -32,6 +32,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                      help="also write the poses as each frame was reported, before the map "
                           "moved them (closed loops, chains found again): TUM format; --out "
                           "holds the corrected ones")
+    run.add_argument("--save-map", type=Path, default=None, metavar="FILE",
+                     help="write the keyframe map to FILE when the run ends (one versioned "
+                          "file, written atomically: docs/map-file.md)")
     run.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                      help="override a Config field (repeatable), e.g. --set max_edges=1024")
     run.add_argument("--max-frames", type=_positive_int, default=None, metavar="N",
@@ -111,6 +114,8 @@ def command(args: argparse.Namespace) -> int:
     for option in ("out", "stats", "rerun", "online"):
         if getattr(args, option) is not None:
             check_output(getattr(args, option), what=f"--{option}")
+    if args.save_map is not None:  # its folder is made when the map is written
+        check_output(args.save_map, what="--save-map", make_folders=True)
     config = Config().with_overrides(args.overrides)
     params = _read_params(args.params, config) if args.params is not None else None
     path = args.sequence if args.sequence is not None else BUNDLED_CLIP
@@ -131,7 +136,7 @@ def command(args: argparse.Namespace) -> int:
     try:
         run = run_sequence(seq, config, out=out, progress=not args.no_progress,
                            max_frames=args.max_frames, params=params, started=args.started,
-                           on_frame=recording)
+                           on_frame=recording, save_map=args.save_map)
     except KeyboardInterrupt as err:
         notes = getattr(err, "__notes__", [])
         print("edgevo: interrupted" + (f"; {notes[0]}" if notes else ""), file=sys.stderr)
@@ -150,6 +155,9 @@ def command(args: argparse.Namespace) -> int:
     if args.stats is not None:
         args.stats.write_text(json.dumps(json_safe(stats), indent=2) + "\n")
     print(_summary_text(stats, out, _rpe_per_frame(run, seq)))
+    if args.save_map is not None:
+        print(f"map           {args.save_map} ({run.map_keyframes} keyframes, "
+              f"{args.save_map.stat().st_size / 1e6:.1f} MB)")
     if args.rerun is not None:
         print(f"rerun recording: {args.rerun} (open with `rerun {args.rerun}`)")
     return 0

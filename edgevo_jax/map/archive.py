@@ -1,21 +1,22 @@
 """A keyframe map in a file: one versioned format, no pickle, written atomically.
 
-The file is a NumPy ``.npz`` archive (``numpy.savez``, read with ``allow_pickle=False``):
-``header``, the UTF-8 bytes of a JSON object, says what it is (``format``
-``"edgevo-map"``, ``version``), which library wrote it, the camera (intrinsics, image size),
-the settings that shape a keyframe (``settings``: edge slots, depth points, fern count and
-seed) and how many keyframes it holds; the other arrays hold every keyframe in the order it
+The file is a NumPy ``.npz`` archive (``numpy.savez``, read with ``allow_pickle=False``).
+``header``, the UTF-8 bytes of a JSON object, says what it is (``format`` ``"edgevo-map"``,
+``version``), which library wrote it, the camera (intrinsics, image size), the settings that
+shape a keyframe (``settings``, ``map_settings``: depth points, the ferns' count, tests and
+seed) and how many keyframes it holds. The other arrays hold every keyframe in the order it
 joined the map: its id, timestamp, pose T_world_kf, whether it is anchored, the best inlier
-share a frame had against it, its fern code, its selected edges (``KeyframeEdges``: one array
-per field, stacked), its edge points and ORB landmarks (ragged: concatenated with offsets).
-and the covisibility of every pair of keyframes that share a view (as the map had it: the
-weights taken when each keyframe joined). docs/map-file.md describes every array.
+share a frame had against it and its fern code, one row each; its selected edges
+(``KeyframeEdges``, one array per field, each keyframe with its own slot count), edge points
+and ORB landmarks, ragged (concatenated, with ``.offsets``); and the covisibility of every
+pair of keyframes that share a view, as the map had it (the weights taken when each keyframe
+joined). docs/map-file.md describes every array.
 
 ``save_map`` writes to a temporary file beside the target and renames it over the target
 (``os.replace``): a crash leaves the old file or none. ``load_map`` refuses, with a
-``MapFileError`` naming the problem and before any keyframe is built, a file that is not a
-map, a map of another format version, one truncated or corrupt, and one made for another
-camera or with settings of another shape.
+``MapFileError`` naming the file and the problem and before any keyframe is built, a file
+that is not a map, a map of another format version, one truncated or corrupt, and one made
+for another camera or with settings of another shape.
 """
 
 from __future__ import annotations
@@ -31,13 +32,15 @@ from typing import Any
 import numpy as np
 
 from ..camera import Intrinsics
+from ..config import Config
 from ..frontend.features import Landmarks
 from ..frontend.selection import KeyframeEdges
 from .poses import Poses
-from .recognition import NUM_FERNS
+from .recognition import NUM_FERNS, SEED, TESTS
 from .store import KeyframeMap, MapKeyframe
 
-__all__ = ["FORMAT", "VERSION", "MapFileError", "load_map", "read_header", "save_map"]
+__all__ = ["FORMAT", "VERSION", "MapFileError", "load_map", "map_settings", "read_header",
+           "read_keyframe_table", "save_map"]
 
 FORMAT = "edgevo-map"
 #: the format's version: a reader refuses any other
@@ -50,6 +53,14 @@ _OPTIONAL = ("mag", "depth_pts", "depth_normals", "disc")
 
 class MapFileError(ValueError):
     """A map file that cannot be used here: the message names the file and the problem."""
+
+
+def map_settings(config: Config) -> dict[str, Any]:
+    """The settings that shape a map's keyframes, which a run that loads it must share: the
+    depth residual's points per keyframe and the ferns' count, tests and seed (place
+    recognition compares codes fern by fern)."""
+    return {"depth_points": config.depth_points if config.depth_residual else 0,
+            "ferns": NUM_FERNS, "fern_tests": TESTS, "fern_seed": SEED}
 
 
 def save_map(path: str | os.PathLike[str], kmap: KeyframeMap, *,
@@ -81,6 +92,8 @@ def save_map(path: str | os.PathLike[str], kmap: KeyframeMap, *,
             np.savez(f, **arrays)
             f.flush()
             os.fsync(f.fileno())
+        # the old file's permissions, else a plain file's (mkstemp makes it owner-only)
+        os.chmod(tmp, path.stat().st_mode & 0o777 if path.exists() else 0o644)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -93,6 +106,23 @@ def read_header(path: str | os.PathLike[str]) -> dict:
     version; MapFileError otherwise."""
     with _opened(path) as data:
         return _header(path, data)
+
+
+def read_keyframe_table(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
+    """The keyframes' ids, timestamps, poses and anchored flags of the map file at
+    ``path`` (one row each), checked as ``load_map`` checks them, without building the map
+    (``edgevo map info``)."""
+    with _opened(path) as data:
+        header = _header(path, data)
+        n = int(header["keyframes"])
+        out = {}
+        for name, shape in (("id", (n,)), ("timestamp", (n,)), ("pose", (n, 4, 4)),
+                            ("anchored", (n,))):
+            out[name] = data[name]
+            if out[name].shape != shape:
+                raise MapFileError(f"{path}: array {name!r} has shape {out[name].shape}, a "
+                                   f"map of {n} keyframes needs {shape}")
+    return out
 
 
 def load_map(path: str | os.PathLike[str], *, intrinsics: Intrinsics | None = None,
@@ -135,13 +165,14 @@ def _keyframe_arrays(entries: list[MapKeyframe]) -> dict[str, np.ndarray]:
            "described": np.array([e.code is not None for e in entries], bool),
            "code": np.stack([np.zeros(NUM_FERNS, np.uint8) if e.code is None
                              else np.asarray(e.code, np.uint8) for e in entries])}
-    for name in _EDGE_FIELDS:
+    for name in _EDGE_FIELDS:  # each keyframe's own slot count: along the last axis
         values = [getattr(e.edges, name) for e in entries]
         present = [v is not None for v in values]
         if any(present) and not all(present):
             raise ValueError(f"keyframes differ in whether their edges have {name!r}")
         if all(present):
-            out[f"edges.{name}"] = np.stack([np.asarray(v) for v in values])
+            out.update(_ragged(f"edges.{name}", [np.moveaxis(np.asarray(v), -1, 0)
+                                                 for v in values]))
     out.update(_ragged("points", [np.asarray(e.points, np.float32).T for e in entries]))
     has = [e.landmarks is not None for e in entries]
     out["landmarks"] = np.array(has, bool)
@@ -172,6 +203,11 @@ class _opened:
         if not self.path.is_file():
             raise MapFileError(f"{self.path}: no such map file")
         self.file = open(self.path, "rb")  # noqa: SIM115 (closed in __exit__ or below)
+        if self.file.read(4) != b"PK\x03\x04":  # a zip archive's first bytes
+            self.file.close()
+            raise MapFileError(f"{self.path}: not a map file (a map is a .npz archive, as "
+                               "--save-map writes it; this file is not one)")
+        self.file.seek(0)
         try:
             self.data = np.load(self.file, allow_pickle=False)
         except (zipfile.BadZipFile, ValueError, OSError, EOFError) as err:
@@ -257,13 +293,14 @@ def _entries(path, header: dict, a: dict[str, np.ndarray]) -> list[MapKeyframe]:
                                f"keyframes needs {shp}")
     if not np.all(np.isfinite(a["pose"])) or not np.all(np.isfinite(a["timestamp"])):
         raise MapFileError(f"{path}: a keyframe's pose or timestamp is not finite")
-    fields = {name: a.get(f"edges.{name}") for name in _EDGE_FIELDS}
     for name in ("uv", "rho", "grad", "valid"):
-        if fields[name] is None or len(fields[name]) != n:
-            raise MapFileError(f"{path}: the keyframes' edges ({name!r}) are missing or cut")
+        if f"edges.{name}" not in a:
+            raise MapFileError(f"{path}: the keyframes' edges ({name!r}) are missing")
+    present = [name for name in _EDGE_FIELDS if f"edges.{name}" in a]
     out = []
     for i in range(n):
-        edges = KeyframeEdges(**{k: (None if v is None else v[i]) for k, v in fields.items()})
+        edges = KeyframeEdges(**{k: np.ascontiguousarray(np.moveaxis(
+            _row(path, a, f"edges.{k}", i), 0, -1)) for k in present})
         lm = None
         if a["landmarks"][i]:
             lm = Landmarks(*(_row(path, a, f"landmarks.{f}", i) for f in Landmarks._fields))

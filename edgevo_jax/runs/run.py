@@ -148,6 +148,7 @@ def run_sequence(
     params: Params | None = None,
     started: float | None = None,
     on_frame: Callable[[FrameResult, np.ndarray, Frame, Odometry], None] | None = None,
+    save_map: str | Path | None = None,
 ) -> RunResult:
     """Track every associated frame of ``seq``; write the TUM trajectory to ``out`` line by
     line (flushed; renamed into place at the end). Returns the per-frame results.
@@ -156,9 +157,13 @@ def run_sequence(
     the CLI passes its own start). ``on_frame(result, rgb, frame, odometry)`` is called
     after each frame is concluded, with its rectified rgb and pre-processed ``Frame`` and
     the tracker in its state after the frame (e.g. ``viz.recording.RerunRecording``).
-    ValueError when ``max_frames`` is not positive (None: every frame)."""
+    ``save_map``: where the keyframe map goes at the end, once the trajectory is written
+    (``Odometry.save_map``). ValueError when ``max_frames`` is not positive (None: every
+    frame) or ``save_map`` is given with the map off."""
     if max_frames is not None and max_frames < 1:
         raise ValueError(f"max_frames must be at least 1 (None: every frame), got {max_frames}")
+    if save_map is not None and not config.map:
+        raise ValueError("save_map needs the keyframe map: Config.map is off")
     started = time.perf_counter() if started is None else started
     odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq), params=params,
                    readout_s=camera_readout(seq))
@@ -190,6 +195,8 @@ def run_sequence(
         if run.corrections:
             writer.rewrite(run.timestamps, matrices_to_poses7(run.poses))
         writer.close()
+    if save_map is not None:  # after the trajectory is safe; every keyframe described
+        odo.save_map(save_map)
     return run
 
 

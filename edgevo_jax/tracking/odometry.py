@@ -224,6 +224,23 @@ class Odometry:
             raise RuntimeError("complete() the frame in flight before finish()")
         self.state = decision.follow(self.state, self._backend.finish(self.state.index - 1))
 
+    def save_map(self, path) -> int:
+        """Write the keyframe map as it is now (every keyframe it holds, with its pose in the
+        record of poses, its edges, landmarks, fern code and covisibility) to ``path``
+        (``map.archive``: one versioned file, written atomically); its size in bytes. It
+        only reads the map: the run goes on as it would have. ValueError with the map off
+        (``Config.map``) or before the first keyframe; RuntimeError while a frame is in
+        flight."""
+        if self._in_flight:
+            raise RuntimeError("complete() the frame in flight before save_map()")
+        kmap = self.keyframe_map
+        if kmap is None or not len(kmap):
+            raise ValueError("no keyframe map to save: Config.map is off, or no keyframe yet")
+        from .. import __version__
+        from ..map.archive import map_settings, save_map
+
+        return save_map(path, kmap, settings=map_settings(self.config), library=__version__)
+
     def close(self) -> None:
         """Stop the back end's workers: the window's (refinements not taken yet are dropped),
         the keyframe map's (keyframes made are described first) and the loops' (a search or

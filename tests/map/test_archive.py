@@ -18,7 +18,7 @@ from edgevo_jax.map import archive
 from edgevo_jax.map.archive import MapFileError, load_map, read_header, save_map
 from edgevo_jax.runs.run import run_sequence
 
-SETTINGS = {"edge_slots": 2048, "fern_seed": 0}
+SETTINGS = {"depth_points": 256, "fern_seed": 2015}
 
 
 @pytest.fixture(scope="module")
@@ -71,7 +71,7 @@ def test_files_that_are_no_map_or_damaged_are_refused_by_name(made, tmp_path):
     data = path.read_bytes()
     cases = {
         "missing.npz": (None, "no such map file"),
-        "text.npz": (b"not a map at all", "truncated or corrupt"),
+        "text.npz": (b"not a map at all", "not a map file"),
         "truncated.npz": (data[: len(data) // 2], "truncated or corrupt"),
     }
     corrupt = bytearray(data)
@@ -112,8 +112,8 @@ def test_another_version_camera_or_settings_is_refused_before_any_keyframe(made,
         load(path, seq, intrinsics=other)
     with pytest.raises(MapFileError, match="640x480 images, this run's are 320x240"):
         load(path, seq, shape=(240, 320))
-    with pytest.raises(MapFileError, match="edge_slots 2048 in the map, 1024 here"):
-        load(path, seq, settings={**SETTINGS, "edge_slots": 1024})
+    with pytest.raises(MapFileError, match="depth_points 256 in the map, 128 here"):
+        load(path, seq, settings={**SETTINGS, "depth_points": 128})
 
 
 def test_a_failed_save_leaves_the_old_file_and_no_litter(made, tmp_path, monkeypatch):
@@ -130,3 +130,43 @@ def test_a_failed_save_leaves_the_old_file_and_no_litter(made, tmp_path, monkeyp
     assert target.read_bytes() == path.read_bytes()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["kept.npz"]
     assert zipfile.is_zipfile(target)
+
+
+def test_saving_mid_run_changes_no_pose(tmp_path):
+    """The streaming API saves the map at any frame and the run goes on as it would have:
+    every pose the same, bit for bit, as a run that never saved."""
+    seq = load_sequence(BUNDLED_CLIP)
+
+    def poses(save: bool) -> np.ndarray:
+        from edgevo_jax.tracking.odometry import Odometry
+
+        with Odometry(Config(), seq.intrinsics) as odo:
+            for i in range(len(seq)):
+                rgb, depth = seq.load_frame(i)
+                odo.track(rgb, depth, float(seq.timestamps[i]))
+                if save and odo.has_keyframe:
+                    odo.save_map(tmp_path / f"at{i}.npz")
+            odo.finish()
+            return odo.poses()
+
+    np.testing.assert_array_equal(poses(True), poses(False))
+    assert len(list(tmp_path.glob("at*.npz"))) == len(seq)
+
+
+def test_the_command_line_saves_the_map_and_map_info_reads_it(tmp_path, capsys):
+    from edgevo_jax.cli import main
+
+    out, saved = tmp_path / "traj.txt", tmp_path / "maps" / "bundled.npz"
+    assert main(["run", "--out", str(out), "--save-map", str(saved), "--no-progress"]) == 0
+    header = read_header(saved)
+    assert header["keyframes"] >= 2 and header["camera"]["width"] == 640
+    assert f"map           {saved}" in capsys.readouterr().out
+    assert main(["map", "info", str(saved)]) == 0
+    text = capsys.readouterr().out
+    assert f"keyframes     {header['keyframes']} " in text and "fx 517.3" in text
+    assert main(["map", "info", str(out)]) == 2  # a trajectory file is no map
+    assert "not a map file" in capsys.readouterr().err
+    # with the map off there is nothing to save: said before any frame is tracked
+    assert main(["run", "--out", str(out), "--save-map", str(saved), "--no-progress",
+                 "--set", "map=false"]) == 2
+    assert "Config.map is off" in capsys.readouterr().err
