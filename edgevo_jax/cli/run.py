@@ -32,6 +32,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                      help="also write the poses as each frame was reported, before the map "
                           "moved them (closed loops, chains found again): TUM format; --out "
                           "holds the corrected ones")
+    run.add_argument("--map", dest="map_file", type=Path, default=None, metavar="FILE",
+                     help="start in a keyframe map saved by --save-map (same camera and "
+                          "settings): the trajectory is written in its frame once a frame is "
+                          "found in it; --stats: map.found_in_loaded")
     run.add_argument("--save-map", type=Path, default=None, metavar="FILE",
                      help="write the keyframe map to FILE when the run ends (one versioned "
                           "file, written atomically: docs/map-file.md)")
@@ -136,7 +140,8 @@ def command(args: argparse.Namespace) -> int:
     try:
         run = run_sequence(seq, config, out=out, progress=not args.no_progress,
                            max_frames=args.max_frames, params=params, started=args.started,
-                           on_frame=recording, save_map=args.save_map)
+                           on_frame=recording, save_map=args.save_map,
+                           map_file=args.map_file)
     except KeyboardInterrupt as err:
         notes = getattr(err, "__notes__", [])
         print("edgevo: interrupted" + (f"; {notes[0]}" if notes else ""), file=sys.stderr)
@@ -155,6 +160,11 @@ def command(args: argparse.Namespace) -> int:
     if args.stats is not None:
         args.stats.write_text(json.dumps(json_safe(stats), indent=2) + "\n")
     print(_summary_text(stats, out, _rpe_per_frame(run, seq)))
+    if args.map_file is not None:
+        found = run.found_in_loaded
+        print(f"loaded map    {args.map_file}: " + (
+            f"found in it at frame {found}; the trajectory is in its frame" if found is not None
+            else "never found in it: the trajectory is in its own frame, its frames WEAK"))
     if args.save_map is not None:
         print(f"map           {args.save_map} ({run.map_keyframes} keyframes, "
               f"{args.save_map.stat().st_size / 1e6:.1f} MB)")

@@ -58,7 +58,9 @@ class RunResult(FrameResults):
     reported, before them (None when none moved); the map's keyframes, bytes and the first
     keyframe it refused at its cap (None each with ``Config.map`` off; ``map_full_at`` None
     below the cap); ``loops``: the loops closed and rejected and the pose graph's solves
-    (``Odometry.loop_stats``; None with ``Config.loops`` or the map off)."""
+    (``Odometry.loop_stats``; None with ``Config.loops`` or the map off); ``map_file``: the
+    map the run started in (None: none), ``found_in_loaded``: the index of the first frame
+    placed in it (None: never)."""
 
     results: list[FrameResult] = field(default_factory=list)
     frame_ms: list[float] = field(default_factory=list)
@@ -75,6 +77,8 @@ class RunResult(FrameResults):
     map_full_at: int | None = None
     online_poses: np.ndarray | None = None
     loops: dict | None = None
+    map_file: str | None = None
+    found_in_loaded: int | None = None
 
     def summary_fields(self) -> dict:
         """Timing statistics and the per-frame record (``per_frame_record``) for
@@ -110,6 +114,9 @@ class RunResult(FrameResults):
                           "revisits": sum(p.startswith("revisit") for p in placed),
                           "frames_moved": len({i for c in self.corrections
                                                for i in range(c.first, c.last + 1)})}
+            if self.map_file is not None:
+                out["map"]["loaded"] = self.map_file
+                out["map"]["found_in_loaded"] = self.found_in_loaded
             if self.loops is not None:
                 out["map"]["loops"] = {
                     "closed": len(self.loops["closed"]),
@@ -149,6 +156,7 @@ def run_sequence(
     started: float | None = None,
     on_frame: Callable[[FrameResult, np.ndarray, Frame, Odometry], None] | None = None,
     save_map: str | Path | None = None,
+    map_file: str | Path | None = None,
 ) -> RunResult:
     """Track every associated frame of ``seq``; write the TUM trajectory to ``out`` line by
     line (flushed; renamed into place at the end). Returns the per-frame results.
@@ -158,17 +166,18 @@ def run_sequence(
     after each frame is concluded, with its rectified rgb and pre-processed ``Frame`` and
     the tracker in its state after the frame (e.g. ``viz.recording.RerunRecording``).
     ``save_map``: where the keyframe map goes at the end, once the trajectory is written
-    (``Odometry.save_map``). ValueError when ``max_frames`` is not positive (None: every
-    frame) or ``save_map`` is given with the map off."""
+    (``Odometry.save_map``); ``map_file``: a saved map the run starts in (``Odometry``'s:
+    refused before any frame where it does not fit). ValueError when ``max_frames`` is not
+    positive (None: every frame) or ``save_map`` is given with the map off."""
     if max_frames is not None and max_frames < 1:
         raise ValueError(f"max_frames must be at least 1 (None: every frame), got {max_frames}")
     if save_map is not None and not config.map:
         raise ValueError("save_map needs the keyframe map: Config.map is off")
     started = time.perf_counter() if started is None else started
     odo = Odometry(config, seq.intrinsics, initial_pose=initial_pose(seq), params=params,
-                   readout_s=camera_readout(seq))
+                   readout_s=camera_readout(seq), map_file=map_file)
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
-    run = RunResult(config=config)
+    run = RunResult(config=config, map_file=None if map_file is None else str(map_file))
     writer = TrajectoryWriter(out) if out is not None else None
     if progress:
         _announce_compile(seq, config, params)
@@ -275,6 +284,7 @@ def _take_map(run: RunResult, odo: Odometry) -> None:
         run.map_keyframes, run.map_bytes, run.map_full_at = len(kmap), kmap.nbytes, kmap.full_at
     run.corrections = list(odo.corrections)
     run.loops = odo.loop_stats
+    run.found_in_loaded = odo.found_in_loaded
     if not run.corrections:
         return
     run.online_poses = run.poses

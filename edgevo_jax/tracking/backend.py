@@ -61,6 +61,21 @@ class Backend:
         self.moved: list[Moved] = []  # keyframes moved after the last tick (a tie's chain)
         self.ms = 0.0  # the tracker's time on the window in this frame (ms)
         self.intrinsics_moved = False  # the window's intrinsics were taken in this frame
+        self.loaded = None  # a keyframe map loaded from a file (``load``), the map starts in it
+
+    def load(self, path) -> int:
+        """Start in the keyframe map saved at ``path`` (``map.archive``; MapFileError where it
+        does not fit this run's camera or settings): its keyframes' poses join the record;
+        the id the next keyframe takes."""
+        from ..map.archive import load_map, map_settings
+
+        if not self.config.map:
+            raise ValueError("a map file needs the keyframe map: Config.map is off")
+        self.loaded = load_map(path, intrinsics=self.solver.intrinsics,
+                               settings=map_settings(self.config),
+                               max_keyframes=self.config.map_max_keyframes, poses=self.poses)
+        self.loaded_path = path
+        return max(self.loaded.ids) + 1
 
     # -- events ------------------------------------------------------------------------------
     def tick(self, index: int) -> list[Moved]:
@@ -252,7 +267,14 @@ class KeyframeMapPart(NullMap):
         """The first keyframe makes the map (and the loops)."""
         if self.places is None:
             b = self.backend
-            self.places = Places(self.config, b.solver.intrinsics, shape, b.poses)
+            if b.loaded is not None and tuple(b.loaded.shape) != tuple(shape):
+                from ..map.archive import MapFileError
+
+                h, w = b.loaded.shape
+                raise MapFileError(f"{b.loaded_path}: the map was made from {w}x{h} images, "
+                                   f"this run's are {shape[1]}x{shape[0]}: another camera")
+            self.places = Places(self.config, b.solver.intrinsics, shape, b.poses,
+                                 kmap=b.loaded)
             self.loops = Loops(self.config) if self.config.loops else None
 
     def tick(self, index: int) -> list[Moved]:

@@ -446,19 +446,29 @@ def _install(state: TrackerState, kf: Keyframe, config: Config) -> TrackerState:
 
 def _first(state: TrackerState, ev: Evidence, config: Config) -> Decision:
     """A frame with no keyframe to solve against (the first, or none usable yet): it becomes
-    the keyframe when it has enough edges with depth, else it is LOST at its prediction."""
+    the keyframe when it has enough edges with depth, else it is LOST at its prediction. In
+    a map loaded from a file, the first keyframe is made at a guess: its chain asks the map
+    where it is and moves into the map's frame when a frame is found (``Tie``)."""
     if not ev.asked(MakeKeyframe):
         return Decision(state, None, (MakeKeyframe(state.num_keyframes, ev.predicted,
                                                    ev.facts.timestamp, state.motion),))
     new, pose, made = state, ev.predicted, ev.answer(MakeKeyframe)
     if made is not None:
-        pose, new = made.keyframe.pose, _install(state, made.keyframe, config)
+        kf = made.keyframe
+        if state.loaded and state.keyframe is None and config.map:
+            kf = dataclasses.replace(kf, guess=Guess(
+                state.index - 1, kf.id, "made before the run was found in the loaded map",
+                ev.facts.timestamp))
+            made = made._replace(keyframe=kf)
+        pose, new = kf.pose, _install(state, kf, config)
     new = dataclasses.replace(new, motion=new.motion.push(pose, ev.facts.timestamp,
                                                           tracked=made is not None))
     if new.keyframe is not None:
         new = dataclasses.replace(new, motion=dataclasses.replace(
             new.motion, rel=relative_from_world(new.motion, new.keyframe.pose)))
     state_, reason = (OK, None) if made else (LOST, "no edges with depth")
+    if made is not None and made.keyframe.guess is not None:  # not tied to the loaded map
+        state_, reason = WEAK, made.keyframe.guess.reason
     result = _result(ev, pose, state_, reason, 0, None, "first" if made else None, 0,
                      made, None)
     return Decision(new, result, ())

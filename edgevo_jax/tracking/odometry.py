@@ -56,6 +56,12 @@ class Odometry:
     >>> result = odo.track(rgb, depth_m, timestamp)  # doctest: +SKIP
 
     ``initial_pose`` (4, 4) is T_world_cam of the first frame (identity by default).
+    ``map_file``: a keyframe map saved by ``save_map`` to start in (``map.archive``; a
+    MapFileError at once where its camera or settings are not this tracker's, or at the
+    first frame where its image size is not the frames'): the first frames are tracked in
+    their own frame, WEAK (not tied to the loaded map), and ask it where they are; the
+    first frame found (``found_in_loaded``, its index) moves them into the map's frame, and
+    the new keyframes join the map (``save_map`` writes the grown one).
     ``params``: learnt ``params.Params`` in place of the config's numbers (Huber radii,
     consistency threshold and the per-edge weighting model drive the solve, ``reobs_a`` the
     selection); None or ``Params.default(config)`` give the plain tracker's trajectory, bit
@@ -89,7 +95,7 @@ class Odometry:
 
     def __init__(
         self, config: Config, intrinsics: Intrinsics, *, initial_pose: np.ndarray | None = None,
-        params: Params | None = None, readout_s: float = 0.0,
+        params: Params | None = None, readout_s: float = 0.0, map_file=None,
     ) -> None:
         enable_cache()  # programs kept on disk, the CLI's arithmetic (``programs``)
         release_compiled()  # a process that tracked under many configurations: room first
@@ -102,6 +108,7 @@ class Odometry:
             raise ValueError("initial_pose must be a finite 4x4 matrix")
         # what reset() starts again from: the constructor's intrinsics, readout and pose
         self._given = (intrinsics, readout_s, pose)
+        self._map_file = map_file
         self.warm_up_ms: float | None = None  # time of the warm-up (at the first keyframe)
         self._start(pose)
 
@@ -111,6 +118,12 @@ class Odometry:
         self._solver = Solver(self.config, self._given[0], self.readout_s, self.params)
         self._backend = Backend(self.config, self._solver, self.readout_s)
         self.state = decision.TrackerState()
+        #: the index of the first frame placed in the loaded map (None: none yet, or no map
+        #: loaded)
+        self.found_in_loaded: int | None = None
+        if self._map_file is not None:
+            first = self._backend.load(self._map_file)
+            self.state = decision.TrackerState(num_keyframes=first, loaded=True)
         self._last_t: float | None = None
         self._in_flight = False
         self._shape: tuple[int, int] | None = None  # (H, W) of the frames seen by ``track``
@@ -376,6 +389,8 @@ class Odometry:
             if not d.actions:
                 before, self.state = self.state, d.state
                 self._backend.concluded(d, job.made, frame, before)
+                if before.loaded and self.found_in_loaded is None and d.tie is not None:
+                    self.found_in_loaded = before.index - 1
                 if d.result.state != LOST:
                     self._tracked_depth = frame.depth
                 return d.result, d.plain

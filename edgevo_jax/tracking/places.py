@@ -80,13 +80,14 @@ QUERY_RATIO = 0.9
 
 class Places:
     """The map of one tracker (module doc), for frames of ``shape`` (H, W) through
-    ``intrinsics``; the keyframes' poses are ``poses``' (the run's one record of them)."""
+    ``intrinsics``; the keyframes' poses are ``poses``' (the run's one record of them);
+    ``kmap``: a map loaded from a file to start from (its poses in ``poses``)."""
 
     def __init__(self, config: Config, intrinsics: Intrinsics, shape: tuple[int, int],
-                 poses: Poses) -> None:
+                 poses: Poses, *, kmap: KeyframeMap | None = None) -> None:
         self.config = config
-        self.map = KeyframeMap(intrinsics, shape, max_keyframes=config.map_max_keyframes,
-                               poses=poses)
+        self.map = kmap if kmap is not None else KeyframeMap(
+            intrinsics, shape, max_keyframes=config.map_max_keyframes, poses=poses)
         self.ferns = make_ferns()
         self._worker = Worker("places")  # describes keyframes
         self._describing = self._worker.queue()

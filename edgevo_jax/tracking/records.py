@@ -105,7 +105,8 @@ class TrackerState:
     """What the tracker carries from frame to frame (module doc). ``previous``: the earlier
     keyframes recovery tries, oldest first; ``asked_t``: when a frame tracked in a chain made
     at a guess last asked the map where it is (s; None: none since the chain was made or
-    tied); ``index``: frames concluded so far."""
+    tied); ``index``: frames concluded so far; ``loaded``: the run began in a map loaded
+    from a file (its first keyframe is made at a guess: nothing ties it to that map yet)."""
 
     keyframe: Keyframe | None = None
     previous: tuple[Keyframe, ...] = ()
@@ -115,6 +116,7 @@ class TrackerState:
     asked_t: float | None = None
     index: int = 0
     num_keyframes: int = 0
+    loaded: bool = False
 
 
 class FrameFacts(NamedTuple):

@@ -170,3 +170,41 @@ def test_the_command_line_saves_the_map_and_map_info_reads_it(tmp_path, capsys):
     assert main(["run", "--out", str(out), "--save-map", str(saved), "--no-progress",
                  "--set", "map=false"]) == 2
     assert "Config.map is off" in capsys.readouterr().err
+
+
+def test_a_run_in_a_saved_map_is_found_in_it_and_written_in_its_frame(tmp_path):
+    """The bundled clip's first 5 frames make a map; its last 5, started at the identity in
+    that map, are WEAK (not tied to it) until a frame is found in it, then in its frame:
+    the frame both runs share lands where the first run put it; the new keyframes join the
+    map, and a second load of the same file gives the same trajectory."""
+    from edgevo_jax.datasets.tum import subsequence
+    from edgevo_jax.geometry import inverse_np, rotation_angle_np
+
+    seq = load_sequence(BUNDLED_CLIP)
+    first, second = subsequence(seq, 0, 5), subsequence(seq, 4, len(seq))
+    saved, grown = tmp_path / "first.npz", tmp_path / "grown.npz"
+    one = run_sequence(first, Config(), progress=False, save_map=saved)
+
+    def run_second():
+        from edgevo_jax.tracking.odometry import Odometry
+
+        with Odometry(Config(), seq.intrinsics, map_file=saved) as odo:
+            results = []
+            for i in range(len(second)):
+                rgb, depth = second.load_frame(i)
+                results.append(odo.track(rgb, depth, float(second.timestamps[i])))
+            odo.finish()
+            odo.save_map(grown)
+            return results, odo.poses(), odo.found_in_loaded
+
+    results, poses, found = run_second()
+    assert found is not None and found <= 2
+    assert all(r.state == "WEAK" and "not tied to the map" in r.reason
+               for r in results[:found])
+    assert results[found].placed.startswith("found again")
+    D = inverse_np(one.poses[4]) @ poses[0]  # frame 4 of the clip, in both runs
+    assert np.linalg.norm(D[:3, 3]) < 0.02 and np.degrees(rotation_angle_np(D)) < 2.0
+    assert read_header(grown)["keyframes"] > read_header(saved)["keyframes"]
+    again, poses_again, found_again = run_second()
+    np.testing.assert_array_equal(poses_again, poses)
+    assert found_again == found
