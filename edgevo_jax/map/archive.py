@@ -39,8 +39,8 @@ from .poses import Poses
 from .recognition import NUM_FERNS, SEED, TESTS
 from .store import KeyframeMap, MapKeyframe
 
-__all__ = ["FORMAT", "VERSION", "MapFileError", "load_map", "map_settings", "read_header",
-           "read_keyframe_table", "save_map"]
+__all__ = ["FORMAT", "VERSION", "MapFileError", "library_version", "load_map", "map_settings",
+           "read_header", "read_keyframe_table", "save_map"]
 
 FORMAT = "edgevo-map"
 #: the format's version: a reader refuses any other
@@ -53,6 +53,17 @@ _OPTIONAL = ("mag", "depth_pts", "depth_normals", "disc")
 
 class MapFileError(ValueError):
     """A map file that cannot be used here: the message names the file and the problem."""
+
+
+def library_version() -> str:
+    """This library's version as installed (``importlib.metadata``; "unknown" when it is
+    run from a tree that is not installed)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("edgevo_jax")
+    except PackageNotFoundError:
+        return "unknown"
 
 
 def map_settings(config: Config) -> dict[str, Any]:

@@ -249,10 +249,10 @@ class Odometry:
         kmap = self.keyframe_map
         if kmap is None or not len(kmap):
             raise ValueError("no keyframe map to save: Config.map is off, or no keyframe yet")
-        from .. import __version__
-        from ..map.archive import map_settings, save_map
+        from ..map.archive import library_version, map_settings, save_map
 
-        return save_map(path, kmap, settings=map_settings(self.config), library=__version__)
+        return save_map(path, kmap, settings=map_settings(self.config),
+                        library=library_version())
 
     def close(self) -> None:
         """Stop the back end's workers: the window's (refinements not taken yet are dropped),

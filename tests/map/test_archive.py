@@ -164,6 +164,11 @@ def test_the_command_line_saves_the_map_and_map_info_reads_it(tmp_path, capsys):
     assert main(["map", "info", str(saved)]) == 0
     text = capsys.readouterr().out
     assert f"keyframes     {header['keyframes']} " in text and "fx 517.3" in text
+    stats = tmp_path / "stats.json"
+    assert main(["run", "--out", str(out), "--map", str(saved), "--stats", str(stats),
+                 "--no-progress"]) == 0  # the same clip again, in its own map: found
+    assert json.loads(stats.read_text())["map"]["found_in_loaded"] is not None
+    assert "found in it at frame" in capsys.readouterr().out
     assert main(["map", "info", str(out)]) == 2  # a trajectory file is no map
     assert "not a map file" in capsys.readouterr().err
     # with the map off there is nothing to save: said before any frame is tracked
