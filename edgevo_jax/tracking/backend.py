@@ -28,6 +28,7 @@ import numpy as np
 from ..config import Config
 from ..frontend.features import Detections
 from ..image.preprocess import Frame
+from ..map.archive import MapFileError, load_map, map_settings
 from ..map.ledger import Ledger
 from ..map.loops import Closed, Loops
 from ..map.poses import Correction, Poses
@@ -62,13 +63,12 @@ class Backend:
         self.ms = 0.0  # the tracker's time on the window in this frame (ms)
         self.intrinsics_moved = False  # the window's intrinsics were taken in this frame
         self.loaded = None  # a keyframe map loaded from a file (``load``), the map starts in it
+        self.loaded_path = None  # its file
 
     def load(self, path) -> int:
         """Start in the keyframe map saved at ``path`` (``map.archive``; MapFileError where it
         does not fit this run's camera or settings): its keyframes' poses join the record;
         the id the next keyframe takes."""
-        from ..map.archive import load_map, map_settings
-
         if not self.config.map:
             raise ValueError("a map file needs the keyframe map: Config.map is off")
         self.loaded = load_map(path, intrinsics=self.solver.intrinsics,
@@ -268,8 +268,6 @@ class KeyframeMapPart(NullMap):
         if self.places is None:
             b = self.backend
             if b.loaded is not None and tuple(b.loaded.shape) != tuple(shape):
-                from ..map.archive import MapFileError
-
                 h, w = b.loaded.shape
                 raise MapFileError(f"{b.loaded_path}: the map was made from {w}x{h} images, "
                                    f"this run's are {shape[1]}x{shape[0]}: another camera")

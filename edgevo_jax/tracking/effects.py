@@ -169,8 +169,7 @@ def check(solver: Solver, previous: np.ndarray | None, frame: Frame, ask: Check
           ) -> float | None:
     """The second opinion ``ask`` asks for (``frontend.depth.depth_agreement``) between the
     depth image of the last frame not LOST (``previous``; None: none kept) and ``frame``'s,
-    seeded by
-    the configuration's seed; None where either has no depth image."""
+    seeded by the configuration's seed; None where either has no depth image."""
     if previous is None or frame.depth is None:
         return None
     config = solver.config

@@ -26,6 +26,7 @@ from ..geometry import inverse_np
 from ..hostmem import to_host
 from ..image.preprocess import Frame, preprocess
 from ..learn.params import Params
+from ..map import archive
 from ..programs import enable_cache, release_compiled
 from . import decision
 from .backend import Backend
@@ -249,10 +250,8 @@ class Odometry:
         kmap = self.keyframe_map
         if kmap is None or not len(kmap):
             raise ValueError("no keyframe map to save: Config.map is off, or no keyframe yet")
-        from ..map.archive import library_version, map_settings, save_map
-
-        return save_map(path, kmap, settings=map_settings(self.config),
-                        library=library_version())
+        return archive.save_map(path, kmap, settings=archive.map_settings(self.config),
+                                library=archive.library_version())
 
     def close(self) -> None:
         """Stop the back end's workers: the window's (refinements not taken yet are dropped),
