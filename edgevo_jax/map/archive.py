@@ -10,7 +10,9 @@ share a frame had against it and its fern code, one row each; its selected edges
 (``KeyframeEdges``, one array per field, each keyframe with its own slot count), edge points
 and ORB landmarks, ragged (concatenated, with ``.offsets``); and the covisibility of every
 pair of keyframes that share a view, as the map had it (the weights taken when each keyframe
-joined). docs/map-file.md describes every array.
+joined); and the pose graph's edges (``map.loops.Edge``: each keyframe's edge from its parent
+and the loops kept, with what they measured and their information). docs/map-file.md
+describes every array.
 
 ``save_map`` writes to a temporary file beside the target and renames it over the target
 (``os.replace``): a crash leaves the old file or none. ``load_map`` refuses, with a
@@ -25,9 +27,9 @@ import json
 import os
 import tempfile
 import zipfile
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -35,16 +37,19 @@ from ..camera import Intrinsics
 from ..config import Config
 from ..frontend.features import Landmarks
 from ..frontend.selection import KeyframeEdges
+from .loops import Edge
 from .poses import Poses
 from .recognition import NUM_FERNS, SEED, TESTS
 from .store import KeyframeMap, MapKeyframe
 
-__all__ = ["FORMAT", "VERSION", "MapFileError", "library_version", "load_map", "map_settings",
-           "read_header", "read_keyframe_table", "save_map"]
+__all__ = ["FORMAT", "VERSION", "MapFileError", "Saved", "library_version", "load_map",
+           "map_settings", "read_header", "read_keyframe_table", "save_map"]
 
 FORMAT = "edgevo-map"
-#: the format's version: a reader refuses any other
-VERSION = 1
+#: the format's version, which ``save_map`` writes
+VERSION = 2
+#: the versions a reader takes: 1 had no pose graph (loaded with none), any other is refused
+READABLE = (1, 2)
 #: intrinsics of a map and of a run agree within this (px)
 INTRINSICS_TOL_PX = 1e-3
 _EDGE_FIELDS = KeyframeEdges._fields
@@ -53,6 +58,13 @@ _OPTIONAL = ("mag", "depth_pts", "depth_normals", "disc")
 
 class MapFileError(ValueError):
     """A map file that cannot be used here: the message names the file and the problem."""
+
+
+class Saved(NamedTuple):
+    """A map read from a file: its keyframes (``kmap``) and its pose graph's edges."""
+
+    kmap: KeyframeMap
+    edges: list[Edge]
 
 
 def library_version() -> str:
@@ -75,11 +87,12 @@ def map_settings(config: Config) -> dict[str, Any]:
 
 
 def save_map(path: str | os.PathLike[str], kmap: KeyframeMap, *,
-             settings: Mapping[str, Any], library: str) -> int:
-    """Write ``kmap`` (every keyframe it holds, with its pose as it is now) to ``path``
-    atomically (module doc); ``settings``: the map-shaping settings (``map_settings``),
-    ``library``: the writer's version. Returns the file's size in bytes. ValueError for a
-    map with no keyframe."""
+             settings: Mapping[str, Any], library: str, edges: Sequence[Edge] = ()) -> int:
+    """Write ``kmap`` (every keyframe it holds, with its pose as it is now) and the pose
+    graph's measured ``edges`` between its keyframes to ``path`` atomically (module doc);
+    ``settings``: the map-shaping settings (``map_settings``), ``library``: the writer's
+    version. Returns the file's size in bytes. ValueError for a map with no keyframe, or an
+    edge unmeasured or to a keyframe it does not hold."""
     keys = kmap.ids
     if not keys:
         raise ValueError("the keyframe map holds no keyframe: nothing to save")
@@ -89,6 +102,7 @@ def save_map(path: str | os.PathLike[str], kmap: KeyframeMap, *,
              if a < b]
     arrays["covisible"] = np.array([(a, b) for a, b, _ in pairs], np.int64).reshape(-1, 2)
     arrays["covisible.weight"] = np.array([wgt for *_, wgt in pairs], np.float64)
+    arrays.update(_graph_arrays(edges, set(keys)))
     h, w = kmap.shape
     header = {"format": FORMAT, "version": VERSION, "library": library,
               "camera": {"intrinsics": [float(v) for v in kmap.intrinsics], "width": int(w),
@@ -139,11 +153,11 @@ def read_keyframe_table(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
 def load_map(path: str | os.PathLike[str], *, intrinsics: Intrinsics | None = None,
              shape: tuple[int, int] | None = None,
              settings: Mapping[str, Any] | None = None, max_keyframes: int,
-             poses: Poses | None = None) -> KeyframeMap:
-    """The keyframe map saved at ``path``, for a run of a camera with ``intrinsics`` and
-    frames of ``shape`` (H, W) and the map-shaping ``settings`` (each None: not checked);
-    its keyframes' poses join ``poses`` (a new record where None). MapFileError (module doc)
-    for a file that does not fit."""
+             poses: Poses | None = None) -> Saved:
+    """The keyframe map saved at ``path`` and its pose graph's edges, for a run of a camera
+    with ``intrinsics`` and frames of ``shape`` (H, W) and the map-shaping ``settings`` (each
+    None: not checked); its keyframes' poses join ``poses`` (a new record where None).
+    MapFileError (module doc) for a file that does not fit."""
     with _opened(path) as data:
         header = _header(path, data)
         _check_fit(path, header, intrinsics, shape, settings)
@@ -163,7 +177,8 @@ def load_map(path: str | os.PathLike[str], *, intrinsics: Intrinsics | None = No
         links[a][b] = links[b][a] = wgt
     for key, weights_of in links.items():
         kmap.covisible_as(key, weights_of)
-    return kmap
+    edges = [] if header["version"] == 1 else _graph(path, arrays, set(kmap.ids))
+    return Saved(kmap, edges)
 
 
 # -- writing ----------------------------------------------------------------------------------
@@ -195,6 +210,21 @@ def _keyframe_arrays(entries: list[MapKeyframe]) -> dict[str, np.ndarray]:
     for field in Landmarks._fields:
         out.update(_ragged(f"landmarks.{field}", [np.asarray(getattr(lm, field)) for lm in lms]))
     return out
+
+
+def _graph_arrays(edges: Sequence[Edge], keys: set[int]) -> dict[str, np.ndarray]:
+    """The pose graph's edges as arrays: ``graph.pairs`` (M, 2) int64 (older, newer),
+    ``graph.measured`` (M, 4, 4), ``graph.information`` (M, 6, 6), ``graph.loop`` (M,)."""
+    for e in edges:
+        if e.measured is None or e.i not in keys or e.j not in keys:
+            raise ValueError(f"the pose graph's edge {e.i}-{e.j} is unmeasured or leaves the "
+                             "map")
+    return {"graph.pairs": np.array([(e.i, e.j) for e in edges], np.int64).reshape(-1, 2),
+            "graph.measured": np.array([e.measured for e in edges], np.float64
+                                       ).reshape(-1, 4, 4),
+            "graph.information": np.array([e.information for e in edges], np.float64
+                                          ).reshape(-1, 6, 6),
+            "graph.loop": np.array([e.loop for e in edges], bool)}
 
 
 def _ragged(name: str, parts: list[np.ndarray]) -> dict[str, np.ndarray]:
@@ -260,10 +290,10 @@ def _header(path, data: _Reader) -> dict:
     if not isinstance(header, dict) or header.get("format") != FORMAT:
         raise MapFileError(f"{path}: not an edgevo map file (format "
                            f"{header.get('format') if isinstance(header, dict) else None!r})")
-    if header.get("version") != VERSION:
+    if header.get("version") not in READABLE:
         raise MapFileError(f"{path}: map file format version {header.get('version')!r}; this "
-                           f"library ({FORMAT} version {VERSION}) reads version {VERSION} "
-                           "only")
+                           f"library ({FORMAT} version {VERSION}) reads versions "
+                           f"{', '.join(map(str, READABLE))}")
     for key in ("camera", "settings", "keyframes", "library"):
         if key not in header:
             raise MapFileError(f"{path}: the map file's header has no {key!r}")
@@ -321,6 +351,25 @@ def _entries(path, header: dict, a: dict[str, np.ndarray]) -> list[MapKeyframe]:
             a["code"][i].copy() if a["described"][i] else None, bool(a["anchored"][i]),
             float(a["share"][i])))
     return out
+
+
+def _graph(path, a: dict[str, np.ndarray], keys: set[int]) -> list[Edge]:
+    """The pose graph's edges of the arrays ``a`` (``_graph_arrays``), checked to fit
+    together and to join keyframes of the map (``keys``)."""
+    names = ("graph.pairs", "graph.measured", "graph.information", "graph.loop")
+    if any(n not in a for n in names):
+        raise MapFileError(f"{path}: the pose graph's arrays are missing")
+    pairs, measured, info, loop = (a[n] for n in names)
+    m = len(pairs)
+    if pairs.shape != (m, 2) or measured.shape != (m, 4, 4) or info.shape != (m, 6, 6) \
+            or loop.shape != (m,):
+        raise MapFileError(f"{path}: the pose graph's arrays do not fit together")
+    if not set(pairs.ravel().tolist()) <= keys:
+        raise MapFileError(f"{path}: a pose graph edge joins a keyframe the map does not hold")
+    if not (np.all(np.isfinite(measured)) and np.all(np.isfinite(info))):
+        raise MapFileError(f"{path}: a pose graph edge is not finite")
+    return [Edge(int(i), int(j), measured[n].copy(), info[n].copy(), bool(loop[n]))
+            for n, (i, j) in enumerate(pairs.tolist())]
 
 
 def _row(path, a: dict[str, np.ndarray], name: str, i: int) -> np.ndarray:

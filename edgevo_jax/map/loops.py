@@ -114,6 +114,26 @@ class Loops:
         self._count = 0  # keyframes told
 
     # -- what the tracker tells it --------------------------------------------------------
+    def load(self, keys, edges: list[Edge]) -> None:
+        """Start from a saved map's graph (``map.archive``): its keyframes ``keys`` (ids) and
+        its measured ``edges``, each keyframe's from its parent and the loops kept; a loop
+        between the saved keyframes and the new ones then moves both."""
+        self._count += len(keys)
+        for e in edges:
+            if e.loop:
+                self.loops.append(e)
+            else:
+                self._odometry[e.j] = e
+            self._link(e.i, e.j)
+        self._warm()
+
+    def edges(self, keys) -> list[Edge]:
+        """The measured edges between keyframes of ``keys`` (ids): each keyframe's from its
+        parent, then the loops kept, in the order found (what a saved map keeps)."""
+        keys = set(keys)
+        return [e for e in (*self._odometry.values(), *self.loops)
+                if e.measured is not None and e.i in keys and e.j in keys]
+
     def keyframe(self, key: int, parent: int | None, covariance: np.ndarray | None) -> None:
         """Keyframe ``key`` was made from a frame tracked against ``parent`` with this
         solve covariance (None, None: the first, or one made at a loss's guess)."""

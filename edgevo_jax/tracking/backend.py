@@ -62,7 +62,7 @@ class Backend:
         self.moved: list[Moved] = []  # keyframes moved after the last tick (a tie's chain)
         self.ms = 0.0  # the tracker's time on the window in this frame (ms)
         self.intrinsics_moved = False  # the window's intrinsics were taken in this frame
-        self.loaded = None  # a keyframe map loaded from a file (``load``), the map starts in it
+        self.loaded = None  # a map loaded from a file (``load``: ``archive.Saved``) to start in
         self.loaded_path = None  # its file
 
     def load(self, path) -> int:
@@ -75,7 +75,7 @@ class Backend:
                                settings=map_settings(self.config),
                                max_keyframes=self.config.map_max_keyframes, poses=self.poses)
         self.loaded_path = path
-        return max(self.loaded.ids) + 1
+        return max(self.loaded.kmap.ids) + 1
 
     # -- events ------------------------------------------------------------------------------
     def tick(self, index: int) -> list[Moved]:
@@ -204,6 +204,10 @@ class NullMap:
     def start(self, shape: tuple[int, int]) -> None:
         """A keyframe is made from frames of ``shape`` (H, W)."""
 
+    def graph_edges(self, keys) -> list:
+        """The pose graph's measured edges between keyframes of ``keys``: none."""
+        return []
+
     def tick(self, index: int) -> list[Moved]:
         """Frame ``index`` begins: the keyframes the loops moved (none)."""
         return []
@@ -266,14 +270,16 @@ class KeyframeMapPart(NullMap):
     def start(self, shape: tuple[int, int]) -> None:
         """The first keyframe makes the map (and the loops)."""
         if self.places is None:
-            b = self.backend
-            if b.loaded is not None and tuple(b.loaded.shape) != tuple(shape):
-                h, w = b.loaded.shape
+            b, loaded = self.backend, self.backend.loaded
+            if loaded is not None and tuple(loaded.kmap.shape) != tuple(shape):
+                h, w = loaded.kmap.shape
                 raise MapFileError(f"{b.loaded_path}: the map was made from {w}x{h} images, "
                                    f"this run's are {shape[1]}x{shape[0]}: another camera")
             self.places = Places(self.config, b.solver.intrinsics, shape, b.poses,
-                                 kmap=b.loaded)
+                                 kmap=None if loaded is None else loaded.kmap)
             self.loops = Loops(self.config) if self.config.loops else None
+            if self.loops is not None and loaded is not None:
+                self.loops.load(loaded.kmap.ids, loaded.edges)
 
     def tick(self, index: int) -> list[Moved]:
         """The loops' solve due at frame ``index`` taken (``_close``), their searches due
@@ -350,6 +356,11 @@ class KeyframeMapPart(NullMap):
             self.places.close()
         if self.loops is not None:
             self.loops.close()
+
+    def graph_edges(self, keys) -> list:
+        """The pose graph's measured edges between keyframes of ``keys`` (``Loops.edges``;
+        none with ``Config.loops`` off)."""
+        return [] if self.loops is None else self.loops.edges(keys)
 
     def _search(self, kf, covariance, frame: Frame, before: TrackerState, index: int) -> None:
         """A keyframe joined the map: it joins the pose graph (its edge from its parent

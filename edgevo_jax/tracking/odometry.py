@@ -240,7 +240,8 @@ class Odometry:
 
     def save_map(self, path) -> int:
         """Write the keyframe map as it is now (every keyframe it holds, with its pose in the
-        record of poses, its edges, landmarks, fern code and covisibility) to ``path``
+        record of poses, its edges, landmarks, fern code and covisibility, and the pose graph's
+        edges) to ``path``
         (``map.archive``: one versioned file, written atomically); its size in bytes. It
         only reads the map: the run goes on as it would have. ValueError with the map off
         (``Config.map``) or before the first keyframe; RuntimeError while a frame is in
@@ -251,7 +252,8 @@ class Odometry:
         if kmap is None or not len(kmap):
             raise ValueError("no keyframe map to save: Config.map is off, or no keyframe yet")
         return archive.save_map(path, kmap, settings=archive.map_settings(self.config),
-                                library=archive.library_version())
+                                library=archive.library_version(),
+                                edges=self._backend.map.graph_edges(kmap.ids))
 
     def close(self) -> None:
         """Stop the back end's workers: the window's (refinements not taken yet are dropped),

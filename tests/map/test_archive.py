@@ -18,7 +18,7 @@ from edgevo_jax.map import archive
 from edgevo_jax.map.archive import MapFileError, load_map, read_header, save_map
 from edgevo_jax.runs.run import run_sequence
 
-SETTINGS = {"depth_points": 256, "fern_seed": 2015}
+SETTINGS = archive.map_settings(Config())
 
 
 @pytest.fixture(scope="module")
@@ -32,11 +32,11 @@ def made(tmp_path_factory):
     odo.finish()
     kmap = odo.keyframe_map
     path = tmp_path_factory.mktemp("map") / "bundled.npz"
-    save_map(path, kmap, settings=SETTINGS, library="test")
+    odo.save_map(path)  # with the pose graph's edges
     return seq, kmap, path
 
 
-def load(path, seq, **kw):
+def load(path, seq, **kw) -> archive.Saved:
     return load_map(path, intrinsics=kw.pop("intrinsics", seq.intrinsics),
                     shape=kw.pop("shape", (seq.height, seq.width)),
                     settings=kw.pop("settings", SETTINGS), max_keyframes=100, **kw)
@@ -44,7 +44,8 @@ def load(path, seq, **kw):
 
 def test_a_map_saved_and_loaded_is_the_same_and_saves_to_the_same_bytes(made, tmp_path):
     seq, kmap, path = made
-    back = load(path, seq)
+    saved = load(path, seq)
+    back = saved.kmap
     assert back.ids == kmap.ids and len(back) >= 2
     for key in kmap.ids:
         a, b = kmap[key], back[key]
@@ -59,8 +60,15 @@ def test_a_map_saved_and_loaded_is_the_same_and_saves_to_the_same_bytes(made, tm
                 np.testing.assert_array_equal(np.asarray(x), y)
         np.testing.assert_array_equal(a.points, b.points)
         assert kmap.covisible(key) == back.covisible(key)
+    # the pose graph: each keyframe but the first tied to its parent, measured
+    assert sorted(e.j for e in saved.edges) == kmap.ids[1:]
+    for e in saved.edges:
+        assert not e.loop and e.i < e.j and e.information.shape == (6, 6)
+        np.testing.assert_allclose(e.measured, np.linalg.inv(back[e.i].pose) @ back[e.j].pose,
+                                   atol=1e-9)
     again = tmp_path / "again.npz"
-    save_map(again, back, settings=SETTINGS, library="test")
+    save_map(again, back, settings=SETTINGS, library=read_header(path)["library"],
+             edges=saved.edges)
     assert again.read_bytes() == path.read_bytes()
     header = read_header(path)
     assert header["keyframes"] == len(kmap) and header["version"] == archive.VERSION
@@ -103,8 +111,10 @@ def rewritten(path: Path, out: Path, **changes) -> Path:
 
 def test_another_version_camera_or_settings_is_refused_before_any_keyframe(made, tmp_path):
     seq, _, path = made
-    with pytest.raises(MapFileError, match="format version 2"):
-        load(rewritten(path, tmp_path / "v2.npz", version=2), seq)
+    with pytest.raises(MapFileError, match="format version 3; .* reads versions 1, 2"):
+        load(rewritten(path, tmp_path / "v3.npz", version=3), seq)
+    # version 1 had no pose graph: read with none
+    assert load(rewritten(path, tmp_path / "v1.npz", version=1), seq).edges == []
     with pytest.raises(MapFileError, match="not an edgevo map file"):
         load(rewritten(path, tmp_path / "fmt.npz", format="something"), seq)
     other = seq.intrinsics._replace(fx=seq.intrinsics.fx + 5.0)

@@ -136,6 +136,50 @@ def test_loops_spread_the_drift_and_reject_a_false_one(false_loop):
         loops.close()
 
 
+def test_a_saved_graph_loaded_lets_a_loop_between_old_and_new_move_both():
+    """A session's graph (keyframes 0-11 of a drifting circle, ``Loops.edges``) loaded into
+    the next session's (``Loops.load``), which goes on from keyframe 11 round to 23 and
+    closes the loop 23 -> 0: the old keyframes move with the new ones (one graph, its gauge
+    the oldest) and the loop closes as in one session; loaded without its edges, every old
+    keyframe is a part of its own, held, and the drift is left in the new half."""
+    truth = circle(24)
+    drift = np.array([0.004, 0.0, 0.002, 0.0, 0.003, 0.0])
+
+    def closed_loop(with_edges: bool):
+        first = Loops(Config(loop_lag=1))
+        later = Loops(Config(loop_lag=1))
+        try:
+            kmap = chain(truth[:12], drift, first)
+            saved = first.edges(kmap.ids)
+            assert [(e.i, e.j) for e in saved] == [(k - 1, k) for k in range(1, 12)]
+            later.load(kmap.ids, saved if with_edges else [])
+            for k in range(12, 24):
+                step = inverse_np(truth[k - 1]) @ truth[k] @ exp_np(drift)
+                kmap[k] = SimpleNamespace(pose=kmap[k - 1].pose @ step, anchored=True)
+                later.keyframe(k, k - 1, COV)
+                later.measure(k, kmap)
+            later.add(0, 23, inverse_np(truth[23]) @ truth[0], COV, "old to new")
+            assert later.submit(kmap, 1)
+            closed = later.due(None)
+            return kmap, closed, later.edges(kmap.ids)
+        finally:
+            first.close()
+            later.close()
+
+    kmap, closed, edges = closed_loop(True)
+    assert len(edges) == 24 and edges[-1].loop  # 23 from their parents, the loop
+    tracked = {k: kmap[k].pose for k in kmap}
+    solved = tracked | {k: closed.moves[k] @ kmap[k].pose for k in closed.moves}
+    assert sorted(closed.moves) == list(range(1, 24))  # the old half moves too
+    assert end_error(solved, truth) < 0.1 * end_error(tracked, truth)
+    assert rms_error(solved, truth) < 0.8 * rms_error(tracked, truth)
+    _, alone, _ = closed_loop(False)
+    # held, each a part of its own (11 is the new half's parent, so moves with it)
+    assert not set(alone.moves) & set(range(11))
+    held = tracked | {k: alone.moves[k] @ kmap[k].pose for k in alone.moves}
+    assert rms_error(solved, truth) < rms_error(held, truth)
+
+
 def test_a_search_and_a_solve_pending_at_the_end_are_taken_not_dropped():
     """A run's end (``KeyframeMapPart.finish``) asks for what is due at None: a loop search
     and a pose-graph solve handed over long before their lag are waited for and given, not
