@@ -1,5 +1,6 @@
 """``edgevo map info FILE``: what a saved keyframe map holds (``map.archive``): its
-keyframes, their extent, its size, camera and settings, and the library that wrote it."""
+keyframes, their extent, its size, camera and settings, and the library that wrote it.
+``edgevo map export FILE OUT.ply``: its edges as a coloured point cloud (``map.export``)."""
 
 from __future__ import annotations
 
@@ -13,11 +14,31 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     kinds = p.add_subparsers(dest="map_command", required=True)
     info = kinds.add_parser("info", help="its keyframes, extent, size and camera")
     info.add_argument("file", type=Path, help="a map file written by --save-map")
+    export = kinds.add_parser(
+        "export", help="its keyframes' edges as a coloured point cloud (PLY)",
+        description="Write the keyframes' edges, lifted with their depth, in the map's "
+                    "frame, as a binary PLY any point-cloud viewer opens; colour: when the "
+                    "keyframe was made (first dark blue, last yellow).")
+    export.add_argument("file", type=Path, help="a map file written by --save-map")
+    export.add_argument("out", type=Path, help="the PLY file to write")
+    export.add_argument("--max-depth", type=float, default=None, metavar="M",
+                        help="only edges nearer than M metres to their keyframe's camera")
 
 
 def command(args: argparse.Namespace) -> int:
-    """``edgevo map info``: print the map's summary; MapFileError (a ValueError: exit 2)
-    for a file that is no readable map."""
+    """``edgevo map info``: print the map's summary; ``edgevo map export``: write the PLY
+    and say how many points. MapFileError (a ValueError: exit 2) for a file that is no
+    readable map."""
+    if args.map_command == "export":
+        from ..io import check_output
+        from ..map.export import export_ply
+
+        if args.out.suffix.lower() != ".ply":
+            raise ValueError(f"{args.out}: the point cloud is written as PLY: name it .ply")
+        check_output(args.out, what="the PLY file", make_folders=True)
+        n = export_ply(args.file, args.out, max_depth=args.max_depth)
+        print(f"wrote {args.out} ({n:,} points)")
+        return 0
     print(info_text(args.file))
     return 0
 

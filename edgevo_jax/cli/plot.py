@@ -64,6 +64,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     help="ablation.json, bench.json or run-statistics JSON file(s)")
     common(co, "configs.png")
 
+    mp = kinds.add_parser("map", help="a saved keyframe map's edges from above and the side")
+    mp.add_argument("file", type=Path, help="a map file written by --save-map")
+    mp.add_argument("--planes", default="xy,xz",
+                    help="axes of each panel, two of x, y, z each (default: xy,xz)")
+    mp.add_argument("--title", default=None, help="title (default: its size)")
+    mp.add_argument("--max-depth", type=float, default=None, metavar="M",
+                    help="only edges nearer than M metres to their keyframe's camera")
+    common(mp, "map.png")
+
 
 def command(args: argparse.Namespace) -> int:
     """``edgevo plot FIGURE``: draw the figure, print where it went."""
@@ -78,7 +87,8 @@ def command(args: argparse.Namespace) -> int:
         raise ValueError(f"--dpi must be positive, got {args.dpi}")
     check_output(args.out, what="--out", make_folders=True)  # before anything is drawn
     out = {"trajectory": _plot_trajectory, "frame": _plot_frame,
-           "selection": _plot_selection, "configs": _plot_configs}[args.figure](args)
+           "selection": _plot_selection, "configs": _plot_configs,
+           "map": _plot_map}[args.figure](args)
     print(f"wrote {out}")
     return 0
 
@@ -150,3 +160,12 @@ def _plot_configs(args: argparse.Namespace) -> Path:
     if kind == "bench":
         return plot_benchmark(records, args.out, dpi=args.dpi)
     return plot_ablation(records, args.out, dpi=args.dpi)
+
+
+def _plot_map(args: argparse.Namespace) -> Path:
+    from ..map.export import map_cloud
+    from ..viz.map import plot_map
+
+    planes = tuple(p.strip() for p in args.planes.split(",") if p.strip())
+    return plot_map(map_cloud(args.file, max_depth=args.max_depth), args.out, planes=planes,
+                    title=args.title, dpi=args.dpi)

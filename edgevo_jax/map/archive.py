@@ -43,7 +43,7 @@ from .recognition import NUM_FERNS, SEED, TESTS
 from .store import KeyframeMap, MapKeyframe
 
 __all__ = ["FORMAT", "VERSION", "MapFileError", "Saved", "library_version", "load_map",
-           "map_settings", "read_header", "read_keyframe_table", "save_map"]
+           "map_settings", "read_cloud", "read_header", "read_keyframe_table", "save_map"]
 
 FORMAT = "edgevo-map"
 #: the format's version, which ``save_map`` writes
@@ -148,6 +148,19 @@ def read_keyframe_table(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
                 raise MapFileError(f"{path}: array {name!r} has shape {out[name].shape}, a "
                                    f"map of {n} keyframes needs {shape}")
     return out
+
+
+def read_cloud(path: str | os.PathLike[str]) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The keyframes' poses (N, 4, 4) T_world_kf and their edges' points, each (P_i, 3)
+    float32 in its camera (m), of the map file at ``path`` (``map.export``)."""
+    table = read_keyframe_table(path)
+    with _opened(path) as data:
+        arrays = {k: data[k] for k in ("points", "points.offsets")}
+    n = len(table["pose"])
+    if arrays["points.offsets"].shape != (n + 1,) or arrays["points"].ndim != 2 or \
+            arrays["points"].shape[1] != 3:
+        raise MapFileError(f"{path}: the ragged array 'points' does not add up")
+    return table["pose"], [_row(path, arrays, "points", i) for i in range(n)]
 
 
 def load_map(path: str | os.PathLike[str], *, intrinsics: Intrinsics | None = None,

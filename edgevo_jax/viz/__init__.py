@@ -21,6 +21,8 @@ The ``edgevo plot`` command (``edgevo_jax.cli``) makes each figure with one comm
   (``runs.fit``): the loss per step, the learnt weight against each input.
 - :func:`sweep.plot_sweep`: ATE and ms per frame of every run of a sweep (``edgevo batch
   SWEEP.toml``'s ``summary.png``).
+- :func:`map.plot_map`: a saved keyframe map's edges from two sides, coloured by keyframe
+  time (``edgevo plot map``).
 - :func:`read_results`: the records of a benchmark, ablation or ``edgevo run --stats`` JSON.
 """
 

@@ -223,3 +223,38 @@ def test_a_run_in_a_saved_map_is_found_in_it_and_written_in_its_frame(tmp_path):
     again, poses_again, found_again = run_second()
     np.testing.assert_array_equal(poses_again, poses)
     assert found_again == found
+
+
+def test_a_map_exported_as_a_point_cloud_holds_its_edges_where_the_map_puts_them(
+        made, tmp_path, capsys):
+    """``edgevo map export``: a binary PLY any viewer reads, one point per edge point of
+    each keyframe, at the keyframe's pose in the map's frame, coloured by keyframe time;
+    ``--max-depth`` keeps the nearer ones; not a map: exit 2 naming it."""
+    from edgevo_jax.cli import main
+    from edgevo_jax.map.export import RAMP, map_cloud
+
+    _, kmap, path = made
+    out = tmp_path / "cloud.ply"
+    assert main(["map", "export", str(path), str(out)]) == 0
+    data = out.read_bytes()
+    head, body = data.split(b"end_header\n", 1)
+    n = int(next(line for line in head.decode().splitlines()
+                 if line.startswith("element vertex")).split()[-1])
+    rows = np.frombuffer(body, [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"),
+                                ("g", "u1"), ("b", "u1")])
+    assert len(rows) == n == sum(kmap[k].points.shape[1] for k in kmap.ids) > 100
+    assert f"wrote {out} ({n:,} points)" in capsys.readouterr().out
+    last = kmap[kmap.ids[-1]]
+    world = (last.pose[:3, :3] @ last.points.astype(np.float64) + last.pose[:3, 3:]).T
+    tail = np.stack([rows["x"], rows["y"], rows["z"]], axis=1)[-len(world):]
+    np.testing.assert_allclose(tail, world, atol=1e-5)
+    rgb = np.stack([rows["r"], rows["g"], rows["b"]], axis=1)
+    assert tuple(rgb[0]) == RAMP[0][1] and tuple(rgb[-1]) == RAMP[-1][1]
+    near = map_cloud(path, max_depth=1.0)
+    assert 0 < len(near.xyz) < n
+    assert main(["map", "export", str(path), str(tmp_path / "cloud.txt")]) == 2
+    assert main(["map", "export", str(out), str(tmp_path / "again.ply")]) == 2
+    assert "not a map file" in capsys.readouterr().err
+    picture = tmp_path / "map.png"
+    assert main(["plot", "map", str(path), "--out", str(picture)]) == 0
+    assert picture.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
