@@ -207,6 +207,14 @@ class Config:
     not the map's): 4 queries a second find the place within 1 s of its coming into view, at
     a fraction of a query per frame. Frames lost or doubted by their own solve ask at every
     frame. Why: ``docs/decisions.md``, "Loops found by what the camera sees"."""
+    map_query_lag: int = 5
+    """[frames] A run started in a map loaded from a file asks it where it is beside
+    tracking while its frames track in their own frame: one frame's query (recognition, a
+    feature start, the edge alignment, verified) runs on a worker and is taken this many
+    frames later (waiting for it if need be: runs stay deterministic), and the frame then
+    is aligned to the keyframe found, from where the query put the chain. Why: a query
+    costs ~3 frames of tracking here; on the tracker's thread it cost a run that never sees
+    the map 1.9x the time per frame (``docs/map-file.md``)."""
     loops: bool = True
     """[-] Close loops (with ``map``): a new keyframe is looked for, beside tracking, among
     the older keyframes of the map that look like it (place recognition over the whole
@@ -268,7 +276,7 @@ class Config:
             raise ValueError("Config.map_chain_query_s must be non-negative")
         for name in ("active_per_keyframe", "activation_cell", "mapping_iterations",
                      "activation_depth_reach", "map_max_keyframes", "map_candidates",
-                     "loop_lag"):
+                     "loop_lag", "map_query_lag"):
             if getattr(self, name) < 1:
                 raise ValueError(f"Config.{name} must be positive")
 

@@ -326,6 +326,7 @@ class KeyframeMapPart(NullMap):
                 self.places.note_share(kf.id, result.inlier_share)
         chain = []
         if tie is not None and tie.correction is not None and tie.guessed is not None:
+            self.places.placed_in_map()
             chain = self.places.anchor(tie.guessed, tie.correction)
             self.backend.moved += [Moved(k, self.backend.poses.keyframe(k)) for k in chain]
         settled = tie is not None or (result.state == OK and kf is not None

@@ -202,22 +202,24 @@ def _found_again(state: TrackerState, ev: Evidence, config: Config, s: _Step
                  ) -> _Step | Relocalise:
     """Rule 4: with the map, a lost or doubted frame asks the map where it is, and so does a
     frame tracked from a keyframe made at a guess, at every frame in the chain's first
-    ``CHAIN_EAGER_S`` and at most every ``map_chain_query_s`` after; a verified place makes
+    ``CHAIN_EAGER_S`` and at most every ``map_chain_query_s`` after (the chain a loaded
+    map's run begins with: at every frame, the query beside tracking); a verified place makes
     it OK against that keyframe (its pose in its own chain kept, ``chain``, to move the
     chain with it)."""
     if not (config.map and ev.facts.num_edges > 0 and (s.lost is not None or s.doubted)):
         return s
     t, guess = ev.facts.timestamp, s.kf.guess
-    if s.lost is None and not s.own_doubt and guess is not None and \
-            t - guess.t >= CHAIN_EAGER_S and state.asked_t is not None and \
-            t - state.asked_t < config.map_chain_query_s:
+    chain = s.lost is None and not s.own_doubt and guess is not None
+    beside = chain and guess.loaded  # the query runs beside tracking: ask at every frame
+    if chain and not beside and t - guess.t >= CHAIN_EAGER_S and \
+            state.asked_t is not None and t - state.asked_t < config.map_chain_query_s:
         return s  # a chain made at a guess a while ago, asked a moment ago
     s = dataclasses.replace(s, asked=True)
     if not ev.asked(Relocalise):
         if s.lost is not None:
             return Relocalise(state.motion.poses[-1])
         guess = s.kf.pose @ inverse_np(np.asarray(s.res.T_c_k, np.float64))
-        return Relocalise(guess, inverse_np(state.motion.poses[-1]) @ guess)
+        return Relocalise(guess, inverse_np(state.motion.poses[-1]) @ guess, beside=beside)
     placed = ev.answer(Relocalise)
     if placed is None:
         return s
@@ -458,7 +460,7 @@ def _first(state: TrackerState, ev: Evidence, config: Config) -> Decision:
         if state.loaded and state.keyframe is None and config.map:
             kf = dataclasses.replace(kf, guess=Guess(
                 state.index - 1, kf.id, "made before the run was found in the loaded map",
-                ev.facts.timestamp))
+                ev.facts.timestamp, loaded=True))
             made = made._replace(keyframe=kf)
         pose, new = kf.pose, _install(state, kf, config)
     new = dataclasses.replace(new, motion=new.motion.push(pose, ev.facts.timestamp,

@@ -11,6 +11,12 @@ alignment refines it, and the place is accepted when verified against the keyfra
 standard (the best share a frame ever had against it): at the doubt ratio on its own, at
 the lost ratio with a second keyframe that puts the frame at the same pose (``confirmed``).
 The first candidate accepted wins; none: the query found nothing, and says so (None).
+Beside tracking (``Relocalise.beside``: a run started in a map loaded from a file, its
+frames tracked in their own frame): one frame's query at a time runs on a worker of its own
+and is taken ``Config.map_query_lag`` frames later; a place it found puts the chain in the
+map's frame, and the frame then is aligned to that keyframe from there and accepted when
+verified at the lost ratio and within ``SECOND_M``, ``SECOND_DEG`` of where the earlier
+frame's place puts it (``_placed_beside``): the tracker pays a fern code and one alignment.
 
 Revisit (``revisit``): the anchored keyframes outside the window that would see the frame at
 its tracked pose (predicted overlap at least ``Config.map_overlap``), best first; the first
@@ -37,7 +43,7 @@ import numpy as np
 from ..camera import Intrinsics
 from ..config import Config
 from ..derive import basin_px
-from ..frontend.features import Detections, landmark_pose, refine_pose
+from ..frontend.features import Detections, detect, landmark_pose, refine_pose
 from ..frontend.selection import KeyframeEdges
 from ..geometry import inverse_np
 from ..image.preprocess import Frame
@@ -91,6 +97,8 @@ class Places:
         self.ferns = make_ferns()
         self._worker = Worker("places")  # describes keyframes
         self._describing = self._worker.queue()
+        self._asking: Worker | None = None  # queries beside tracking (made at the first)
+        self._queries = None  # their results: (frame index, its pose in its chain)
 
     # -- what the tracker tells it --------------------------------------------------------
     def add(self, kf: Keyframe, edges: KeyframeEdges, frame: Frame,
@@ -112,9 +120,19 @@ class Places:
         self.map.note_share(key, share)
 
     def close(self) -> None:
-        """Describe what is pending and stop the worker."""
+        """Describe what is pending and stop the workers (a query beside tracking not taken
+        is dropped)."""
         self.settle()
         self._worker.close()
+        if self._asking is not None:
+            self._queries.clear()
+            self._asking.close()
+
+    def placed_in_map(self) -> None:
+        """The chain is tied to the map: queries beside tracking still pending are dropped
+        (their tasks finish on the worker)."""
+        if self._queries is not None:
+            self._queries.clear()
 
     def anchor(self, first: int, correction: np.ndarray) -> list[int]:
         """The chain made at a guess from keyframe ``first`` on is tied to the map: its
@@ -134,6 +152,8 @@ class Places:
     def relocalise(self, solver: Solver, state: TrackerState, frame: Frame, ask: Relocalise,
                    timestamp: float, found: Detections | None) -> Placed | None:
         """Where the map places the frame (module doc; ``found``: its keypoints), or None."""
+        if ask.beside:
+            return self._beside(solver, state, frame, ask, timestamp)
         self.settle()
         if frame.gray is None or found is None or not len(self.map):
             return None
@@ -147,6 +167,52 @@ class Places:
         return place(candidates, found.get("orb", QUERY_FEATURES), frame, align, usable,
                      reference_share(state, self.config), self.config, intr=solver.intrinsics,
                      label="found again")
+
+    def _beside(self, solver: Solver, state: TrackerState, frame: Frame, ask: Relocalise,
+                timestamp: float) -> Placed | None:
+        """A frame tracked in its own frame, asking the map beside tracking (module doc):
+        the query due at this frame is taken (a place it found: ``_placed_beside``), and
+        where none is in flight this frame's starts on the worker. The loaded map's
+        keyframes are described when loaded: this waits for no description."""
+        index, placed = state.index - 1, None
+        if self._queries is None:
+            self._asking = Worker("queries")
+            self._queries = self._asking.queue(self.config.map_query_lag)
+        for (j, chain_j), answer in self._queries.due(index):
+            if answer is not None and placed is None:
+                placed = self._placed_beside(solver, state, frame, ask, timestamp, answer,
+                                             chain_j, j)
+        if placed is None and not len(self._queries) and frame.gray is not None:
+            candidates = self._by_appearance(encode(self.ferns, frame.gray, frame.depth),
+                                             k=self.config.map_candidates)
+            if candidates:
+                self._queries.submit(index, (index, ask.guess), partial(
+                    _query, copy.copy(solver), state, frame, timestamp, ask.motion,
+                    candidates, reference_share(state, self.config), self.config))
+        return placed
+
+    def _placed_beside(self, solver: Solver, state: TrackerState, frame: Frame,
+                       ask: Relocalise, timestamp: float, answer: Placed,
+                       chain_j: np.ndarray, j: int) -> Placed | None:
+        """The frame aligned to the keyframe the query of frame ``j`` (``chain_j``: its pose
+        in its chain then) placed it on, from the pose that place gives this frame's pose
+        in the chain (``ask.guess``); a ``Placed`` when verified at the lost ratio and
+        within ``SECOND_M``, ``SECOND_DEG`` of that pose, else None."""
+        entry = self.map[answer.keyframe.id]
+        kf, config = _keyframe(entry), self.config
+        placed_j = answer.keyframe.pose @ inverse_np(np.asarray(answer.result.T_c_k,
+                                                                np.float64))
+        pose = placed_j @ inverse_np(chain_j) @ ask.guess
+        align, usable = _aligner(solver, state, frame, timestamp, ask.motion)
+        out = align(kf, frame, inverse_np(pose) @ kf.pose)
+        if not (verified(out, usable, basin_px=basin_px(config),
+                         standard=entry.share or reference_share(state, config) or 1.0,
+                         ratio=config.lost_share_ratio) and
+                agree(pose, kf.pose @ inverse_np(np.asarray(out.T_c_k, np.float64)),
+                      metres=SECOND_M, degrees=SECOND_DEG)):
+            return None
+        return Placed(kf, out, f"{answer.note}; at frame {j}, beside tracking: this frame "
+                      f"aligned from there, inlier share {inlier_share(out):.2f}")
 
     def _by_appearance(self, code: np.ndarray, *, k: int, guess: np.ndarray | None = None,
                        exclude=()) -> list[_Candidate]:
@@ -286,6 +352,18 @@ def place(candidates: list[_Candidate], kps, frame: Frame, align, usable,
         if other is not None:
             return Placed(kf, out, note + f", confirmed by keyframe {other})")
     return None
+
+
+def _query(solver: Solver, state: TrackerState, frame: Frame, timestamp: float,
+           motion: np.ndarray | None, candidates: list[_Candidate], reference: float | None,
+           config: Config) -> Placed | None:
+    """A frame's query beside tracking (``Places._beside``): its keypoints detected here,
+    placed on the first of ``candidates`` that passes (``place``). Reads only what it is
+    given."""
+    align, usable = _aligner(solver, state, frame, timestamp, motion)
+    kps = detect(frame.gray, kind="orb", max_features=QUERY_FEATURES)
+    return place(candidates, kps, frame, align, usable, reference, config,
+                 intr=solver.intrinsics, label="found in the loaded map")
 
 
 def confirmed(kf: Keyframe, res, confirmers: list[MapKeyframe], frame: Frame, align, usable,

@@ -21,12 +21,14 @@ class Guess(NamedTuple):
     ``t``, s) at which keyframe ``keyframe`` was made at a pose nothing verified (``why``: a
     loss's held or predicted pose, or a doubted frame's). Frames tracked from it, or from
     keyframes made after it in the chain, are not tied to the map until a frame of the
-    chain is found in it."""
+    chain is found in it. ``loaded``: the chain a run started in a map loaded from a file
+    begins with (its frames ask the map beside tracking, ``Relocalise.beside``)."""
 
     frame: int
     keyframe: int
     why: str
     t: float
+    loaded: bool = False
 
     @property
     def reason(self) -> str:
@@ -170,10 +172,14 @@ class Relocalise(NamedTuple):
     its anchored keyframes and those a camera at ``guess`` (T_world_cam; None: none) would
     see, each aligned from a feature start and verified. ``motion``: the frame's motion
     from the last frame T_last_cur as its chain tracked it (the rolling shutter's velocity;
-    None for a lost frame: none). The answer is a ``Placed`` or None."""
+    None for a lost frame: none). ``beside``: a frame tracked in the chain a loaded map's run
+    begins with: the query runs beside tracking, and the answer is the frame aligned to the
+    keyframe an earlier frame's query found (``places.Places.relocalise``). The answer is a
+    ``Placed`` or None."""
 
     guess: np.ndarray | None
     motion: np.ndarray | None = None
+    beside: bool = False
 
 
 class Revisit(NamedTuple):
