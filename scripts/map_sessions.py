@@ -6,6 +6,7 @@ Usage::
     python scripts/map_sessions.py split CLIP [--at 100] [--seeds 0-4] [--out-json FILE]
     python scripts/map_sessions.py never CLIP --map-of CLIP2 [--rounds 3] [--out-json FILE]
     python scripts/map_sessions.py digests CLIP [--at 5] [--out-json FILE]
+    python scripts/map_sessions.py loop CLIP [--depth-scale 1.06] [--seeds 0-4]
 
 ``split``: the clip's frames before ``--at`` and from it on are two sessions, cut as a user
 cuts a recording (``subsequence``: the same files); each order in turn, per seed: the first
@@ -20,6 +21,15 @@ under ``CLIP``'s) against a map of ``CLIP2``,
 and the same run with no map, ``--rounds`` times interleaved: whether it was ever placed
 (it should not be), its states, and the mean and median ms a frame of both (warm: the first
 frames left out, ``measure.frame_stats``) and their ratio.
+
+``loop``: a loop between two sessions after real drift: the clip there and back
+(``datasets.there_and_back``: its even frames forward, its odd frames back, the way back
+through a depth sensor reading ``--depth-scale`` short, ``perturb.perturbed_copy``); the
+way there is the first session, its map saved; the way back, from the identity in that
+map, is found in it where it starts and drifts back to where the first session began. Per
+seed, the second session with loops and without (``loops=false``): where it was found, the
+loops it closed to keyframes of the loaded map (and any wrong, ``measure.wrong_loops``),
+and both sessions' ATE after one rigid alignment.
 
 ``digests``: the clip's frames before ``--at`` saved as a map and the rest run in it: the
 map saved, loaded and saved again (the same bytes?), the second session run twice in the
@@ -40,10 +50,18 @@ from pathlib import Path
 import numpy as np
 
 from edgevo_jax import Config, enable_batch_exact
+from edgevo_jax.datasets import there_and_back
+from edgevo_jax.datasets.perturb import perturbed_copy
 from edgevo_jax.datasets.tum import load_sequence, subsequence
-from edgevo_jax.map.archive import load_map, map_settings, save_map
+from edgevo_jax.map.archive import (
+    library_version,
+    load_map,
+    map_settings,
+    read_keyframe_table,
+    save_map,
+)
 from edgevo_jax.reports import digest, int_list, script_record, write_json
-from edgevo_jax.runs.measure import accuracy, frame_stats
+from edgevo_jax.runs.measure import accuracy, frame_stats, wrong_loops
 from edgevo_jax.runs.run import RunResult, run_sequence
 
 
@@ -125,6 +143,43 @@ def never(args, tmp: Path) -> dict:
             "runs": rows}
 
 
+def loop(args, tmp: Path) -> dict:
+    """Two sessions there and back, a loop between them after drift (module doc)."""
+    clip = load_sequence(args.clip)
+    biased = tmp / args.clip.name  # the name keeps the camera
+    perturbed_copy(args.clip, biased, depth_scale=args.depth_scale)
+    seq = there_and_back(clip, load_sequence(biased))
+    half = (len(clip) + 1) // 2  # the even frames: the way there
+    there, back = subsequence(seq, 0, half), subsequence(seq, half, len(seq))
+    rows = []
+    for seed in args.seeds:
+        config = Config().with_overrides([*args.set, f"seed={seed}"])
+        path = tmp / f"there_{seed}.npz"
+        one = run_sequence(there, config, progress=False, save_map=path)
+        loaded = set(read_keyframe_table(path)["id"].tolist())
+        row: dict = {"seed": seed}
+        for name, cfg in (("loops", config), ("map_only", config.replace(loops=False))):
+            two = session(back, cfg, map_file=path)
+            closed = (two.loops or {"closed": []})["closed"]
+            t = np.concatenate([one.timestamps, back.timestamps])
+            ate = accuracy(seq.groundtruth, t, np.concatenate([one.poses, two.poses]))
+            row[name] = m = {
+                "found_in_loaded": two.found_in_loaded, "ate_m": ate["ate_rmse_m"],
+                "loops_old_new": sum(e["older"] in loaded for e in closed),
+                "loops_closed": len(closed),
+                "loops_wrong": wrong_loops(two.loops, seq),
+                "digest": digest(two)}
+            print(f"seed {seed} {name:8s}: found at frame {m['found_in_loaded']}; both "
+                  f"sessions {1e3 * m['ate_m']:.1f} mm; loops {m['loops_closed']} closed, "
+                  f"{m['loops_old_new']} to the loaded map, {m['loops_wrong']} wrong",
+                  flush=True)
+        rows.append(row)
+    ratio = [r["loops"]["ate_m"] / r["map_only"]["ate_m"] for r in rows]
+    print(f"ATE loops / map only: {min(ratio):.2f}-{max(ratio):.2f}; a loop to the loaded "
+          f"map in {sum(r['loops']['loops_old_new'] > 0 for r in rows)} of {len(rows)} seeds")
+    return {"clip": str(args.clip), "depth_scale": args.depth_scale, "runs": rows}
+
+
 def digests(args, tmp: Path) -> dict:
     """Save, load, save; two runs in one map; saving at every frame (module doc)."""
     seq = load_sequence(args.clip)
@@ -134,8 +189,6 @@ def digests(args, tmp: Path) -> dict:
     run_sequence(first, config, progress=False, save_map=path)
     loaded = load_map(path, intrinsics=seq.intrinsics, settings=map_settings(config),
                       max_keyframes=config.map_max_keyframes)
-    from edgevo_jax.map.archive import library_version
-
     save_map(again, loaded.kmap, settings=map_settings(config), library=library_version(),
              edges=loaded.edges)
     runs = [session(second, config, map_file=path) for _ in range(2)]
@@ -159,7 +212,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the measurement asked for; print it and write it to JSON."""
     argv = list(sys.argv[1:] if argv is None else argv)
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("what", choices=("split", "never", "digests"))
+    p.add_argument("what", choices=("split", "never", "loop", "digests"))
     p.add_argument("clip", type=Path)
     p.add_argument("--at", type=int, default=None, help="the second session's first frame")
     p.add_argument("--seeds", type=int_list, default=[0, 1, 2, 3, 4])
@@ -167,6 +220,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--camera-of", choices=("map", "clip"), default="map",
                    help="never: both run under the camera of the map's clip or of CLIP")
+    p.add_argument("--depth-scale", type=float, default=1.06,
+                   help="loop: the way back's true depth over the depth read")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--out-json", type=Path, default=None)
     args = p.parse_args(argv)
@@ -175,8 +230,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.at = args.at if args.at is not None else (100 if args.what == "split" else 5)
     enable_batch_exact()
     with tempfile.TemporaryDirectory() as tmp:
-        record = {"split": split, "never": never, "digests": digests}[args.what](args,
-                                                                                  Path(tmp))
+        record = {"split": split, "never": never, "loop": loop,
+                  "digests": digests}[args.what](args, Path(tmp))
     write_json(args.out_json or Path(f"map_sessions_{args.what}.json"),
                {**script_record("map_sessions.py", argv), **record})
     return 0

@@ -78,6 +78,9 @@ QUERY_FEATURES = 2000
 #: sees the query well for 94-100 % of the shared clips' frames (scripts/place_recognition.py),
 #: and each costs the loops' worker a PnP and one or two alignments
 LOOP_CANDIDATES = 3
+#: keyframes a query beside tracking tries (the most alike): one each, as the next frame's
+#: query follows ``map_query_lag`` frames later; each costs the worker a match and a PnP
+BESIDE_CANDIDATES = 1
 #: Lowe's ratio for the matches PnP starts from: looser than the recovery's 0.8 (more
 #: matches across a wide baseline; RANSAC, guided matching and the edge solve's
 #: verification after it keep a wrong pose out)
@@ -184,7 +187,7 @@ class Places:
                                              chain_j, j)
         if placed is None and not len(self._queries) and frame.gray is not None:
             candidates = self._by_appearance(encode(self.ferns, frame.gray, frame.depth),
-                                             k=self.config.map_candidates)
+                                             k=BESIDE_CANDIDATES)
             if candidates:
                 self._queries.submit(index, (index, ask.guess), partial(
                     _query, copy.copy(solver), state, frame, timestamp, ask.motion,
