@@ -203,14 +203,17 @@ def _found_again(state: TrackerState, ev: Evidence, config: Config, s: _Step
     """Rule 4: with the map, a lost or doubted frame asks the map where it is, and so does a
     frame tracked from a keyframe made at a guess, at every frame in the chain's first
     ``CHAIN_EAGER_S`` and at most every ``map_chain_query_s`` after (the chain a loaded
-    map's run begins with: at every frame, the query beside tracking); a verified place makes
+    map's run begins with: its first frame at once, then every frame, the query beside
+    tracking); a verified place makes
     it OK against that keyframe (its pose in its own chain kept, ``chain``, to move the
     chain with it)."""
     if not (config.map and ev.facts.num_edges > 0 and (s.lost is not None or s.doubted)):
         return s
     t, guess = ev.facts.timestamp, s.kf.guess
     chain = s.lost is None and not s.own_doubt and guess is not None
-    beside = chain and guess.loaded  # the query runs beside tracking: ask at every frame
+    # a loaded map's chain: its first frame asks on the tracker's thread, the next beside
+    # tracking, at every frame (the back end runs one at a time)
+    beside = chain and guess.loaded and state.asked_t is not None
     if chain and not beside and t - guess.t >= CHAIN_EAGER_S and \
             state.asked_t is not None and t - state.asked_t < config.map_chain_query_s:
         return s  # a chain made at a guess a while ago, asked a moment ago
@@ -237,7 +240,9 @@ def _checked(state: TrackerState, ev: Evidence, config: Config, s: _Step) -> _St
     frame, is WEAK when too few of the depth points of the last frame not LOST lie on its
     surfaces at its motion from that frame (``Check``; ``Config.depth_check_share``): the
     distance field agrees with a wrong pose where edges snap to their neighbours, two depth
-    images do not. (A LOST frame's pose is a guess: no measure of the motion.)"""
+    images do not. (A LOST frame's pose is a guess: no measure of the motion. A frame placed
+    with the chain it was tracked in: its motion in that chain, as the last frame's pose is
+    the chain's.)"""
     share, tracked = config.depth_check_share, state.motion.tracked
     if not (share > 0 and s.lost is None and s.weak is None and tracked is not None):
         return s
@@ -247,6 +252,8 @@ def _checked(state: TrackerState, ev: Evidence, config: Config, s: _Step) -> _St
             or ev.asked(Confirm)):
         return s
     if not ev.asked(Check):
+        if s.chain is not None:  # placed with its chain: the last frame is in the chain's
+            return Check(inverse_np(s.chain) @ tracked)
         T_c_k = orthonormalise_np(np.asarray(s.res.T_c_k, np.float64))
         return Check(T_c_k @ inverse_np(s.kf.pose) @ tracked)
     agreement = ev.answer(Check)

@@ -187,13 +187,16 @@ def test_the_command_line_saves_the_map_and_map_info_reads_it(tmp_path, capsys):
     assert "Config.map is off" in capsys.readouterr().err
 
 
-def test_a_run_in_a_saved_map_is_found_in_it_and_written_in_its_frame(tmp_path):
+def test_a_run_in_a_saved_map_is_found_in_it_and_written_in_its_frame(tmp_path, monkeypatch):
     """The bundled clip's first 5 frames make a map; its last 5, started at the identity in
     that map, are WEAK (not tied to it) until a frame is found in it, then in its frame:
     the frame both runs share lands where the first run put it; the new keyframes join the
-    map, and a second load of the same file gives the same trajectory."""
+    map, and a second load of the same file gives the same trajectory. The first frame
+    tracked asks on the tracker's thread; where it finds nothing (made to, here), the next
+    frames ask beside tracking, each query taken ``map_query_lag`` frames later."""
     from edgevo_jax.datasets.tum import subsequence
     from edgevo_jax.geometry import inverse_np, rotation_angle_np
+    from edgevo_jax.tracking import places
 
     seq = load_sequence(BUNDLED_CLIP)
     first, second = subsequence(seq, 0, 5), subsequence(seq, 4, len(seq))
@@ -213,18 +216,35 @@ def test_a_run_in_a_saved_map_is_found_in_it_and_written_in_its_frame(tmp_path):
             odo.save_map(grown)
             return results, odo.poses(), odo.found_in_loaded
 
+    def check(results, poses, found) -> None:
+        assert all(r.state == "WEAK" and "not tied to the map" in r.reason
+                   for r in results[:found])
+        assert results[found].state == "OK", [(r.state, r.reason) for r in results]
+        D = inverse_np(one.poses[4]) @ poses[0]  # frame 4 of the clip, in both runs
+        assert np.linalg.norm(D[:3, 3]) < 0.02 and np.degrees(rotation_angle_np(D)) < 2.0
+
     results, poses, found = run_second()
-    # frame 1's query, beside tracking, is taken map_query_lag frames later
-    assert found is not None and found <= 1 + config.map_query_lag
-    assert all(r.state == "WEAK" and "not tied to the map" in r.reason
-               for r in results[:found])
-    assert results[found].placed.startswith("found in the loaded map")
-    D = inverse_np(one.poses[4]) @ poses[0]  # frame 4 of the clip, in both runs
-    assert np.linalg.norm(D[:3, 3]) < 0.02 and np.degrees(rotation_angle_np(D)) < 2.0
+    assert found == 1 and results[1].placed.startswith("found again")  # on the thread
+    check(results, poses, found)
     assert read_header(grown)["keyframes"] > read_header(saved)["keyframes"]
     again, poses_again, found_again = run_second()
     np.testing.assert_array_equal(poses_again, poses)
     assert found_again == found
+    # the first query finds nothing: frame 2's, beside tracking, is taken at frame 4
+    calls = []
+    real = places.place
+
+    def first_fails(*args, **kwargs):
+        calls.append(kwargs["label"])
+        return None if len(calls) == 1 else real(*args, **kwargs)
+
+    monkeypatch.setattr(places, "place", first_fails)
+    results, poses, found = run_second()
+    assert calls[:2] == ["found again", "found in the loaded map"]
+    assert found == 2 + config.map_query_lag
+    assert results[found].placed.startswith("found in the loaded map: keyframe ")
+    assert "at frame 2, beside tracking" in results[found].placed
+    check(results, poses, found)
 
 
 def test_a_map_exported_as_a_point_cloud_holds_its_edges_where_the_map_puts_them(

@@ -492,9 +492,10 @@ def test_a_keyframe_made_at_a_loss_is_guessed_and_frames_tracked_from_it_are_wea
 
 def test_the_chain_a_loaded_map_run_begins_with_asks_beside_tracking_at_every_frame():
     """A run started in a loaded map: its first keyframe is guessed (``Guess.loaded``) and
-    every frame tracked from its chain asks the map beside tracking (``Relocalise.beside``),
-    with no pause after the chain's first second; a frame doubted by its own solve asks on
-    the tracker's thread, as any; a place found ties the chain as any tie does."""
+    its first frame tracked asks the map on the tracker's thread, every later one beside
+    tracking (``Relocalise.beside``), with no pause after the chain's first second; a frame
+    doubted by its own solve asks on the tracker's thread, as any; a place found ties the
+    chain as any tie does."""
     first = TrackerState(num_keyframes=7, loaded=True)
     ev = Evidence(facts(0.0), None, np.eye(4))
     d0 = decide(first, ev, MAP)
@@ -509,17 +510,27 @@ def test_the_chain_a_loaded_map_run_begins_with_asks_beside_tracking_at_every_fr
         return None
 
     st = dataclasses.replace(d0.state, shares=(0.9,), tracked_t=0.0)
-    for t in (0.03, 1.5, 1.53):  # in the first second and long after: every frame
+    asked, d = conclude(st, solve(0.9), facts(0.03), config=MAP, placed=placed)
+    assert asked == [Relocalise] and not asks[-1].beside  # the first: on the thread
+    st = d.state
+    assert st.asked_t == 0.03
+    for t in (0.06, 1.5, 1.53):  # in the first second and long after: every frame
         on = dataclasses.replace(st, tracked_t=t - 0.03, keyframe=dataclasses.replace(
             st.keyframe, since=t - 0.03))
         asked, d = conclude(on, solve(0.9), facts(t), config=MAP, placed=placed)
         assert asked == [Relocalise] and d.result.state == "WEAK"
-    assert [a.beside for a in asks] == [True] * 3
+    assert [a.beside for a in asks] == [False, True, True, True]
     asked, _ = conclude(st, solve(0.9, moved=100.0), facts(0.03), config=MAP,
                         confirmed=False, placed=placed)
     assert asked == [Confirm, Relocalise] and not asks[-1].beside
-    asked, d = conclude(st, solve(0.9), facts(0.03), config=MAP, placed=on_old())
+    checks = []
+    asked, d = conclude(st, solve(0.9), facts(0.03), config=MAP, placed=on_old(),
+                        checked=lambda s_, action: checks.append(action) or 0.9)
     assert d.result.state == "OK" and d.tie.guessed == kf.id and d.tie.restart
+    # the second opinion measures its motion in its chain, where the last frame's pose is
+    chain = kf.pose @ np.linalg.inv(shift(0.01))
+    np.testing.assert_allclose(checks[0].T_cur_prev,
+                               np.linalg.inv(chain) @ st.motion.tracked, atol=1e-12)
 
 
 def test_a_keyframe_made_from_a_doubted_frame_is_guessed():
