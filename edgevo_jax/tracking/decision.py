@@ -203,7 +203,7 @@ def _found_again(state: TrackerState, ev: Evidence, config: Config, s: _Step
     """Rule 4: with the map, a lost or doubted frame asks the map where it is, and so does a
     frame tracked from a keyframe made at a guess, at every frame in the chain's first
     ``CHAIN_EAGER_S`` and at most every ``map_chain_query_s`` after (the chain a loaded
-    map's run begins with: its first frame at once, then every frame, the query beside
+    map's run begins with: its first frame on the tracker's thread, the later ones beside
     tracking); a verified place makes
     it OK against that keyframe (its pose in its own chain kept, ``chain``, to move the
     chain with it)."""
@@ -211,12 +211,12 @@ def _found_again(state: TrackerState, ev: Evidence, config: Config, s: _Step
         return s
     t, guess = ev.facts.timestamp, s.kf.guess
     chain = s.lost is None and not s.own_doubt and guess is not None
-    # a loaded map's chain: its first frame asks on the tracker's thread, the next beside
-    # tracking, at every frame (the back end runs one at a time)
-    beside = chain and guess.loaded and state.asked_t is not None
-    if chain and not beside and t - guess.t >= CHAIN_EAGER_S and \
-            state.asked_t is not None and t - state.asked_t < config.map_chain_query_s:
+    if chain and t - guess.t >= CHAIN_EAGER_S and state.asked_t is not None and \
+            t - state.asked_t < config.map_chain_query_s:
         return s  # a chain made at a guess a while ago, asked a moment ago
+    # a loaded map's chain: its first frame asks on the tracker's thread, the next beside
+    # tracking (the back end runs one query at a time)
+    beside = chain and guess.loaded and state.asked_t is not None
     s = dataclasses.replace(s, asked=True)
     if not ev.asked(Relocalise):
         if s.lost is not None:
