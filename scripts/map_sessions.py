@@ -7,7 +7,6 @@ Usage::
     python scripts/map_sessions.py never CLIP --map-of CLIP2 [--rounds 3] [--out-json FILE]
     python scripts/map_sessions.py digests CLIP [--at 5] [--out-json FILE]
     python scripts/map_sessions.py loop CLIP [--depth-scale 1.06] [--seeds 0-4]
-    python scripts/map_sessions.py bounded CLIP [--keyframes 1000] [--out-json FILE]
 
 ``split``: the clip's frames before ``--at`` and from it on are two sessions, cut as a user
 cuts a recording (``subsequence``: the same files); each order in turn, per seed: the first
@@ -32,11 +31,6 @@ seed, the second session with loops and without (``loops=false``): where it was 
 loops it closed to keyframes of the loaded map (and any wrong, ``measure.wrong_loops``),
 and both sessions' ATE after one rigid alignment.
 
-``bounded``: the clip's map, its keyframes repeated (each copy 2 m from the last along x,
-new ids, one chain of pose-graph edges) to ``--keyframes``: the file's size a keyframe, and
-the time to save it and to load it (three loads; the covisibility of each keyframe is
-recomputed as it joins).
-
 ``digests``: the clip's frames before ``--at`` saved as a map and the rest run in it: the
 map saved, loaded and saved again (the same bytes?), the second session run twice in the
 same map (the same trajectory?), and run once more saving its map at every frame (the
@@ -50,7 +44,6 @@ import dataclasses
 import hashlib
 import sys
 import tempfile
-import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -60,7 +53,6 @@ from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets import there_and_back
 from edgevo_jax.datasets.perturb import perturbed_copy
 from edgevo_jax.datasets.tum import load_sequence, subsequence
-from edgevo_jax.map import KeyframeMap
 from edgevo_jax.map.archive import (
     library_version,
     load_map,
@@ -68,7 +60,6 @@ from edgevo_jax.map.archive import (
     read_keyframe_table,
     save_map,
 )
-from edgevo_jax.map.loops import Edge
 from edgevo_jax.reports import digest, int_list, script_record, write_json
 from edgevo_jax.runs.measure import accuracy, frame_stats, wrong_loops
 from edgevo_jax.runs.run import RunResult, run_sequence
@@ -193,42 +184,6 @@ def loop(args, tmp: Path) -> dict:
     return {"clip": str(args.clip), "depth_scale": args.depth_scale, "runs": rows}
 
 
-def bounded(args, tmp: Path) -> dict:
-    """A map of ``--keyframes`` keyframes saved and loaded (module doc)."""
-    seq = load_sequence(args.clip)
-    config = Config().with_overrides(args.set)
-    path, big = tmp / "clip.npz", tmp / "big.npz"
-    run_sequence(seq, config, progress=False, save_map=path)
-    saved = load_map(path, max_keyframes=config.map_max_keyframes)
-    entries = [saved.kmap[k] for k in saved.kmap.ids]
-    kmap = KeyframeMap(saved.kmap.intrinsics, saved.kmap.shape, max_keyframes=args.keyframes)
-    info = saved.edges[0].information if saved.edges else np.eye(6)
-    edges = []
-    for n in range(args.keyframes):
-        entry, shift = entries[n % len(entries)], np.eye(4)
-        shift[0, 3] = 2.0 * (n // len(entries))
-        kmap.add(dataclasses.replace(entry, id=n, pose=shift @ entry.pose,
-                                     timestamp=entry.timestamp + 100.0 * (n // len(entries))))
-        if n:
-            edges.append(Edge(n - 1, n, np.linalg.inv(kmap[n - 1].pose) @ kmap[n].pose, info))
-    t0 = time.perf_counter()
-    size = save_map(big, kmap, settings=map_settings(config), library=library_version(),
-                    edges=edges)
-    save_s = time.perf_counter() - t0
-    load_s = []
-    for _ in range(3):
-        t0 = time.perf_counter()
-        back = load_map(big, intrinsics=seq.intrinsics, settings=map_settings(config),
-                        max_keyframes=config.map_max_keyframes)
-        load_s.append(time.perf_counter() - t0)
-    assert len(back.kmap) == args.keyframes and len(back.edges) == len(edges)
-    print(f"{args.keyframes} keyframes: {size / 1e6:.1f} MB ({size / args.keyframes / 1e3:.0f} "
-          f"kB a keyframe), saved in {save_s:.2f} s, loaded in "
-          f"{', '.join(f'{s:.2f}' for s in load_s)} s")
-    return {"clip": str(args.clip), "keyframes": args.keyframes, "bytes": size,
-            "save_s": save_s, "load_s": load_s}
-
-
 def digests(args, tmp: Path) -> dict:
     """Save, load, save; two runs in one map; saving at every frame (module doc)."""
     seq = load_sequence(args.clip)
@@ -261,13 +216,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the measurement asked for; print it and write it to JSON."""
     argv = list(sys.argv[1:] if argv is None else argv)
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("what", choices=("split", "never", "loop", "bounded", "digests"))
+    p.add_argument("what", choices=("split", "never", "loop", "digests"))
     p.add_argument("clip", type=Path)
     p.add_argument("--at", type=int, default=None, help="the second session's first frame")
     p.add_argument("--seeds", type=int_list, default=[0, 1, 2, 3, 4])
     p.add_argument("--map-of", type=Path, default=None, help="never: the map's clip")
     p.add_argument("--rounds", type=int, default=3)
-    p.add_argument("--keyframes", type=int, default=1000, help="bounded: the map's size")
     p.add_argument("--camera-of", choices=("map", "clip"), default="map",
                    help="never: both run under the camera of the map's clip or of CLIP")
     p.add_argument("--depth-scale", type=float, default=1.06,
@@ -280,7 +234,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.at = args.at if args.at is not None else (100 if args.what == "split" else 5)
     enable_batch_exact()
     with tempfile.TemporaryDirectory() as tmp:
-        record = {"split": split, "never": never, "loop": loop, "bounded": bounded,
+        record = {"split": split, "never": never, "loop": loop,
                   "digests": digests}[args.what](args, Path(tmp))
     write_json(args.out_json or Path(f"map_sessions_{args.what}.json"),
                {**script_record("map_sessions.py", argv), **record})
