@@ -163,10 +163,12 @@ def test_wide_pairs_pair_each_keyframe_with_frames_turned_by_the_angles():
 def test_calibrate_recovers_a_focal_length_one_percent_off(shared_clip, tmp_path):
     """fr3_teddy's first 100 frames, once with its own calibration and once with
     calibration.txt stating fx 1 % too large (540.75 for 535.4): fitting fx and fy on wide
-    pairs gives the same focal lengths from both starts (within 0.25 %, a quarter of the
-    error), each with a 1-sigma under the 0.5 % resolution, and fx within 1 % of the clip's
-    stated calibration (itself an estimate). From the tracker's own pairs alone (3-5 deg
-    apart) fx was not observable and kept at its start."""
+    pairs gives the same focal lengths from both starts within 0.5 % (half the error: a fit
+    that stayed at its start differs by 1 %), each with a 1-sigma under the 0.5 % resolution,
+    and fx within 1 % of the clip's stated calibration (itself an estimate). Over seeds 0-4
+    the two starts differ by 0.08-0.40 % (docs/decisions.md, "Calibrating the camera"): the
+    pairs tracked from each start differ. From the tracker's own pairs alone (3-5 deg apart)
+    fx was not observable and kept at its start."""
     clip = shared_clip("rgbd_dataset_freiburg3_teddy_first200")
     found = []
     for case, factor in (("true", 1.0), ("fx_off", 1.01)):
@@ -177,7 +179,7 @@ def test_calibrate_recovers_a_focal_length_one_percent_off(shared_clip, tmp_path
         assert set(cal.sigma) == {"fx", "fy"} and max(cal.sigma.values()) < 2.5, cal.sigma
         assert cal.camera.intrinsics[2:] == truth.intrinsics[2:]  # cx, cy not fitted
         found.append(np.array(cal.camera.intrinsics[:2]))
-    np.testing.assert_allclose(found[1], found[0], rtol=0.0025)
+    np.testing.assert_allclose(found[1], found[0], rtol=0.005)
     assert abs(found[1][0] / truth.intrinsics.fx - 1.0) < 0.01  # fy: a slow orbit about y
 
 
