@@ -4,6 +4,7 @@ with NaN as null, text), markdown tables of formatted numbers, and integer lists
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import json
 import math
@@ -18,8 +19,8 @@ import numpy as np
 from .io import json_safe
 from .provenance import machine_info
 
-__all__ = ["digest", "fmt", "int_list", "markdown_table", "script_record", "write_json",
-           "write_text"]
+__all__ = ["digest", "fmt", "int_list", "markdown_table", "script_parser", "script_record",
+           "write_json", "write_text"]
 
 _INT_ITEM = re.compile(r"^(-?\d+)\s*(?:-\s*(-?\d+))?$")
 
@@ -76,6 +77,19 @@ def script_record(script: str, argv: Sequence[str]) -> dict[str, object]:
     and its arguments, shell-quoted) and the machine it ran on (``provenance.machine_info``)."""
     return {"command": shlex.join(["python", f"scripts/{script}", *argv]),
             "machine": machine_info()}
+
+
+def script_parser(doc: str, *, seeds: str | None = None) -> argparse.ArgumentParser:
+    """A script's argument parser, described by the first paragraph of ``doc`` (its module
+    doc). With ``seeds`` (e.g. ``"0-4"``, the default of ``--seeds``) the two options of a
+    script that runs the tracker over seeds: ``--seeds`` (``int_list``) and ``--set
+    KEY=VALUE`` (repeatable: a Config field for every run, as ``edgevo run --set`` takes it)."""
+    p = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    if seeds is not None:
+        p.add_argument("--seeds", type=int_list, default=int_list(seeds))
+        p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                       help="a Config field for every run, as edgevo run --set takes it")
+    return p
 
 
 def int_list(spec: str) -> list[int]:

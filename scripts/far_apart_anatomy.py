@@ -18,7 +18,6 @@ are spread over the true motion; writes everything to JSON.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from collections import Counter
 from collections.abc import Sequence
@@ -29,7 +28,7 @@ import numpy as np
 from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets.tum import load_sequence, subsequence
 from edgevo_jax.geometry import inverse_np, rotation_angle_np
-from edgevo_jax.reports import int_list, script_record, write_json
+from edgevo_jax.reports import int_list, script_parser, script_record, write_json
 from edgevo_jax.runs.measure import (
     accuracy,
     diverged_frames,
@@ -49,14 +48,11 @@ def true_motion(gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run every offset and seed; print and write the anatomy."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = script_parser(__doc__, seeds="0-2")
     p.add_argument("clip", type=Path)
     p.add_argument("--step", type=int, default=10)
     p.add_argument("--offsets", type=int_list, default=None, help="default: 0 to step-1")
-    p.add_argument("--seeds", type=int_list, default=[0, 1, 2])
     p.add_argument("--out-json", type=Path, default=Path("far_apart_anatomy.json"))
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="a Config field for every run, as edgevo run --set takes it")
     args = p.parse_args(argv)
     enable_batch_exact()
     full = load_sequence(args.clip)

@@ -17,7 +17,6 @@ rejected and wrong (``measure.wrong_loops``), and the digests of both runs.
 
 from __future__ import annotations
 
-import argparse
 import sys
 import tempfile
 from collections.abc import Sequence
@@ -28,7 +27,7 @@ import numpy as np
 from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets import load_sequence, there_and_back
 from edgevo_jax.datasets.perturb import perturbed_copy
-from edgevo_jax.reports import digest, int_list, script_record, write_json
+from edgevo_jax.reports import digest, script_parser, script_record, write_json
 from edgevo_jax.runs.measure import accuracy, end_to_end_error, groundtruth_at, wrong_loops
 from edgevo_jax.runs.run import run_sequence
 
@@ -46,12 +45,10 @@ def revisit_error(poses: np.ndarray, gt: np.ndarray, fx: float) -> tuple[float, 
 def main(argv: Sequence[str] | None = None) -> int:
     """Build the sequence, run every seed with loops and without; print and write."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = script_parser(__doc__, seeds="0-4")
     p.add_argument("clip", type=Path)
     p.add_argument("--depth-scale", type=float, default=1.06,
                    help="the way back's true depth over the depth read (1: unbiased)")
-    p.add_argument("--seeds", type=int_list, default=[0, 1, 2, 3, 4])
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--out-json", type=Path, default=Path("loop_after_drift.json"))
     args = p.parse_args(argv)
     enable_batch_exact()

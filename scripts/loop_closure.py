@@ -22,7 +22,6 @@ JSON.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -32,7 +31,7 @@ import numpy as np
 from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets.pingpong import pingpong
 from edgevo_jax.datasets.tum import load_sequence
-from edgevo_jax.reports import digest, int_list, script_record, write_json
+from edgevo_jax.reports import digest, script_parser, script_record, write_json
 from edgevo_jax.runs.measure import accuracy, end_to_end_error, groundtruth_at, wrong_loops
 from edgevo_jax.runs.run import run_sequence
 from edgevo_jax.tracking import places as relocalise
@@ -93,12 +92,10 @@ def measured(run, seq, gt: np.ndarray, false_loop: bool = False) -> dict:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run every seed with loops and without (and with a false loop); print and write."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = script_parser(__doc__, seeds="0-4")
     p.add_argument("clip", type=Path)
     p.add_argument("--passes", type=int, default=4, help="forward, back, ...: 4 ends at "
                    "the start")
-    p.add_argument("--seeds", type=int_list, default=[0, 1, 2, 3, 4])
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--false-loop", type=int, default=None, metavar="N")
     p.add_argument("--out-json", type=Path, default=Path("loop_closure.json"))
     args = p.parse_args(argv)

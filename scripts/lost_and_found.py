@@ -24,7 +24,6 @@ writes everything to JSON.
 
 from __future__ import annotations
 
-import argparse
 import sys
 import tempfile
 import warnings
@@ -36,7 +35,7 @@ import numpy as np
 from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets.cover import covered_copy
 from edgevo_jax.datasets.tum import EmptyDepthWarning, load_sequence
-from edgevo_jax.reports import digest, int_list, script_record, write_json
+from edgevo_jax.reports import digest, int_list, script_parser, script_record, write_json
 from edgevo_jax.runs.measure import (
     DIVERGED_ROT_DEG,
     DIVERGED_TRANS_M,
@@ -86,11 +85,9 @@ def covered_run(seq, run, cover: list[int], gt: np.ndarray) -> dict:
 def main(argv: Sequence[str] | None = None) -> int:
     """Make the covered copy, run every seed; print and write the measures."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = script_parser(__doc__, seeds="0-4")
     p.add_argument("clip", type=Path)
     p.add_argument("--cover", type=int_list, default=list(range(100, 130)))
-    p.add_argument("--seeds", type=int_list, default=[0, 1, 2, 3, 4])
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--keep", type=Path, default=None, help="where the covered copy goes")
     p.add_argument("--out-json", type=Path, default=Path("lost_and_found.json"))
     args = p.parse_args(argv)

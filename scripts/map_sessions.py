@@ -17,10 +17,10 @@ its frames WEAK, both sessions' poses together after one rigid alignment to the 
 (ATE) against one uninterrupted run of the clip with the same seed, and the ratio.
 
 ``never``: ``CLIP`` under ``CLIP2``'s camera (its intrinsics; ``--camera-of clip``: both
-under ``CLIP``'s) against a map of ``CLIP2``,
-and the same run with no map, ``--rounds`` times interleaved: whether it was ever placed
-(it should not be), its states, and the mean and median ms a frame of both (warm: the first
-frames left out, ``measure.frame_stats``) and their ratio.
+under ``CLIP``'s) against a map of ``CLIP2``, and the same run with no map, ``--rounds``
+times interleaved: whether it was ever placed (it should not be), its states, and the mean
+and median ms a frame of both (warm: the first frames left out, ``measure.frame_stats``)
+and their ratio.
 
 ``loop``: a loop between two sessions after real drift: the clip there and back
 (``datasets.there_and_back``: its even frames forward, its odd frames back, the way back
@@ -39,7 +39,6 @@ trajectory changed?), as sha256 digests.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import hashlib
 import sys
@@ -60,7 +59,7 @@ from edgevo_jax.map.archive import (
     read_keyframe_table,
     save_map,
 )
-from edgevo_jax.reports import digest, int_list, script_record, write_json
+from edgevo_jax.reports import digest, script_parser, script_record, write_json
 from edgevo_jax.runs.measure import accuracy, frame_stats, wrong_loops
 from edgevo_jax.runs.run import RunResult, run_sequence
 
@@ -77,6 +76,10 @@ def session(seq, config: Config, *, map_file: Path | None = None,
     return run_sequence(dataclasses.replace(seq, groundtruth=None), config, progress=False,
                         map_file=map_file, save_map=save_to,
                         on_frame=save if save_each else None)
+
+
+def _states(run: RunResult) -> dict[str, int]:
+    return {s: sum(r.state == s for r in run.results) for s in ("OK", "WEAK", "LOST")}
 
 
 def split(args, tmp: Path) -> dict:
@@ -99,8 +102,7 @@ def split(args, tmp: Path) -> dict:
             found = two.found_in_loaded
             row = {"seed": seed, "map_of": saved, "found_in_loaded": found,
                    "weak_before_found": sum(r.state == "WEAK" for r in two.results[:found or 0]),
-                   "states": {s: sum(r.state == s for r in two.results)
-                              for s in ("OK", "WEAK", "LOST")},
+                   "states": _states(two),
                    "ate_m": ate, "ate_whole_m": ate_whole, "ratio": ate / ate_whole,
                    "placed": next((r.placed for r in two.results if r.placed), None)}
             rows.append(row)
@@ -131,8 +133,7 @@ def never(args, tmp: Path) -> dict:
         inmap = session(seq, config, map_file=path)
         a, b = frame_stats(plain.frame_ms), frame_stats(inmap.frame_ms)
         rows.append({"round": n, "found_in_loaded": inmap.found_in_loaded,
-                     "states": {s: sum(r.state == s for r in inmap.results)
-                                for s in ("OK", "WEAK", "LOST")},
+                     "states": _states(inmap),
                      "ms_without": a, "ms_with": b, "ratio_mean": b["mean"] / a["mean"],
                      "ratio_median": b["median"] / a["median"]})
         print(f"round {n}: found {inmap.found_in_loaded}; states {rows[-1]['states']}; ms a "
@@ -197,7 +198,8 @@ def digests(args, tmp: Path) -> dict:
              edges=loaded.edges)
     runs = [session(second, config, map_file=path) for _ in range(2)]
     saving = session(second, config, map_file=path, save_to=tmp / "each.npz", save_each=True)
-    out = {"map": _sha(path.read_bytes()), "map_saved_again": _sha(again.read_bytes()),
+    out = {"map": hashlib.sha256(path.read_bytes()).hexdigest(),
+           "map_saved_again": hashlib.sha256(again.read_bytes()).hexdigest(),
            "runs": [digest(r) for r in runs],
            "saving_each_frame": digest(saving),
            "found_in_loaded": [r.found_in_loaded for r in (*runs, saving)]}
@@ -208,25 +210,19 @@ def digests(args, tmp: Path) -> dict:
     return {"clip": str(args.clip), "at": args.at, **out}
 
 
-def _sha(data: bytes) -> str:
-    return hashlib.sha256(data).hexdigest()
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the measurement asked for; print it and write it to JSON."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = script_parser(__doc__, seeds="0-4")
     p.add_argument("what", choices=("split", "never", "loop", "digests"))
     p.add_argument("clip", type=Path)
     p.add_argument("--at", type=int, default=None, help="the second session's first frame")
-    p.add_argument("--seeds", type=int_list, default=[0, 1, 2, 3, 4])
     p.add_argument("--map-of", type=Path, default=None, help="never: the map's clip")
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--camera-of", choices=("map", "clip"), default="map",
                    help="never: both run under the camera of the map's clip or of CLIP")
     p.add_argument("--depth-scale", type=float, default=1.06,
                    help="loop: the way back's true depth over the depth read")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--out-json", type=Path, default=None)
     args = p.parse_args(argv)
     if args.what == "never" and args.map_of is None:

@@ -19,7 +19,6 @@ OK frames). Prints a line per clip and rate and writes every run to JSON.
 
 from __future__ import annotations
 
-import argparse
 import sys
 import warnings
 from collections.abc import Sequence
@@ -29,7 +28,7 @@ import numpy as np
 
 from edgevo_jax import Config, enable_batch_exact
 from edgevo_jax.datasets.tum import EmptyDepthWarning, load_sequence, subsequence
-from edgevo_jax.reports import int_list, script_record, write_json
+from edgevo_jax.reports import int_list, script_parser, script_record, write_json
 from edgevo_jax.runs.measure import (
     DIVERGED_ROT_DEG,
     DIVERGED_TRANS_M,
@@ -70,12 +69,10 @@ def summary(rows: Sequence[dict]) -> dict:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the sweep; print and write it."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = script_parser(__doc__, seeds="0-2")
     p.add_argument("clips", nargs="+", type=Path)
     p.add_argument("--steps", type=int_list, default=[3, 5, 10, 20])
     p.add_argument("--offsets", type=int_list, default=list(range(10)))
-    p.add_argument("--seeds", type=int_list, default=[0, 1, 2])
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--out-json", type=Path, default=Path("ok_means_right.json"))
     args = p.parse_args(argv)
     enable_batch_exact()

@@ -16,24 +16,20 @@ step in one ``evaluate`` batch.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
 
 from edgevo_jax import Config, enable_batch_exact, evaluate, load_sequence, run
-from edgevo_jax.reports import digest, int_list
+from edgevo_jax.reports import digest, int_list, script_parser
 
 
 def main(argv: list[str] | None = None) -> int:
     enable_batch_exact()  # the CLI's arithmetic
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = script_parser(__doc__, seeds="0-2")
     p.add_argument("clips", nargs="+", type=Path)
     p.add_argument("--steps", type=int_list, default=[1, 2, 3])
-    p.add_argument("--seeds", type=int_list, default=[0, 1, 2])
     p.add_argument("--batch", action="store_true", help="through evaluate (the batch path)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="a Config field for every run, as edgevo run --set takes it")
     p.add_argument("--out", type=Path)
     p.add_argument("--check", type=Path)
     args = p.parse_args(argv)
