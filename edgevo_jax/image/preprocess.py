@@ -2,10 +2,11 @@
 
 gray -> Gaussian blur -> Canny; Sobel gradients (their L2 magnitude is the one Canny
 thresholds); level-0 Euclidean distance field to the nearest edge (OpenCV's 5x5 chamfer
-approximation); levels 1..L-1 by linear downscaling of level 0 with distances rescaled to
-the level's pixels. The nearest edge's gradient (the consistency test) is found on the device
-from the distance field and a map of edge directions (``preprocess.EdgeMap``): a labelled
-distance transform would give it for every pixel, at three times the cost of the plain one.
+approximation); levels 1..L-1 by halving level 0 (means of 2x2 blocks) with distances
+rescaled to the level's pixels. The nearest edge's gradient (the consistency test) is found
+on the device from the distance field and a map of edge directions (``preprocess.EdgeMap``):
+a labelled distance transform would give it for every pixel, at three times the cost of the
+plain one.
 """
 
 from __future__ import annotations
@@ -103,15 +104,22 @@ def detect_edges(gray: np.ndarray, config: Config) -> tuple[np.ndarray, np.ndarr
 
 
 def distance_pyramid(level0: np.ndarray, num_levels: int) -> tuple[np.ndarray, ...]:
-    """Levels 1.. by halving with linear interpolation; distances divided by 2 per level
-    (64-byte aligned, see ``aligned_empty``)."""
+    """Levels 1.. of a float32 distance field (H, W): level l + 1's pixel (x, y) is the mean
+    of level l's 2x2 block at (2x, 2y), ((top left + top right) + (bottom left + bottom
+    right)) / 4 in float32, and its distance divided by 2 (the level's pixels); an odd last
+    row or column is left out, so that every level is an exact halving, as
+    ``Intrinsics.at_level`` has it. Shapes (H // 2**l, W // 2**l), 64-byte aligned
+    (``aligned_empty``). The sums are ours, not ``cv2.resize``'s: the same for even sizes
+    as OpenCV 5.1's, bit for bit, where 5.0's rounded some pixels one unit in the last place
+    apart, and the tracker amplifies such differences (docs/decisions.md, "The distance
+    pyramid's halving")."""
     levels = [level0]
     for _ in range(1, num_levels):
         prev = levels[-1]
-        h, w = prev.shape
-        out = cv2.resize(prev, (w // 2, h // 2), dst=aligned_empty((h // 2, w // 2), np.float32),
-                         interpolation=cv2.INTER_LINEAR)
-        levels.append(np.multiply(out, np.float32(0.5), out=out))
+        h, w = prev.shape[0] // 2, prev.shape[1] // 2
+        pairs = np.add(prev[:2 * h, 0:2 * w:2], prev[:2 * h, 1:2 * w:2])  # each row's
+        out = np.add(pairs[0::2], pairs[1::2], out=aligned_empty((h, w), np.float32))
+        levels.append(np.multiply(out, np.float32(0.125), out=out))  # / 4, then / 2
     return tuple(levels)
 
 

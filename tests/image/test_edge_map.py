@@ -15,6 +15,7 @@ from edgevo_jax.image.preprocess import (
     EdgeMap,
     detect_edges,
     direction_codes,
+    distance_pyramid,
     frame_from_edges,
     to_gray,
 )
@@ -102,3 +103,27 @@ def test_looked_up_codes_equal_computed_ones():
     np.testing.assert_array_equal(job.codes, direction_code_values(job.grad))
     np.testing.assert_array_equal(job.finish().edge_map.code,
                                   direction_codes(job.pts, job.grad, job.shape))
+
+
+def test_distance_pyramid_halves_exactly_at_any_size():
+    """Each level is the mean of the level above's 2x2 blocks, halved (distances in the
+    level's pixels), an odd last row or column left out: a field linear in the pixel
+    coordinates comes down as the same field at u_l = (u_0 + 0.5) / 2**l - 0.5
+    (``Intrinsics.at_level``), at odd sizes too, where a resampling to H // 2 rows stretches
+    it; and every level equals the float64 block means to float32 rounding."""
+    h, w = 61, 83  # 61 -> 30 -> 15 -> 7 rows: odd at three levels
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    linear = (0.75 * u + 0.5 * v + 3.0).astype(np.float32)  # exact in float32
+    levels = distance_pyramid(linear, 4)
+    for level, field in enumerate(levels):
+        assert field.shape == (h >> level, w >> level) and field.dtype == np.float32
+        vl, ul = np.mgrid[0:field.shape[0], 0:field.shape[1]].astype(np.float64)
+        u0, v0 = (ul + 0.5) * 2**level - 0.5, (vl + 0.5) * 2**level - 0.5
+        np.testing.assert_array_equal(field, (0.75 * u0 + 0.5 * v0 + 3.0) / 2**level)
+    rng = np.random.default_rng(0)
+    noisy = rng.uniform(0, 40, (h, w)).astype(np.float32)
+    levels = distance_pyramid(noisy, 4)
+    for above, field in zip(levels, levels[1:], strict=False):
+        r, c = field.shape
+        blocks = above[:2 * r, :2 * c].astype(np.float64).reshape(r, 2, c, 2)
+        np.testing.assert_allclose(field, blocks.mean(axis=(1, 3)) / 2, rtol=1e-6)
