@@ -109,10 +109,8 @@ def distance_pyramid(level0: np.ndarray, num_levels: int) -> tuple[np.ndarray, .
     right)) / 4 in float32, and its distance divided by 2 (the level's pixels); an odd last
     row or column is left out, so that every level is an exact halving, as
     ``Intrinsics.at_level`` has it. Shapes (H // 2**l, W // 2**l), 64-byte aligned
-    (``aligned_empty``). The sums are ours, not ``cv2.resize``'s: the same for even sizes
-    as OpenCV 5.1's, bit for bit, where 5.0's rounded some pixels one unit in the last place
-    apart, and the tracker amplifies such differences (docs/decisions.md, "The distance
-    pyramid's halving")."""
+    (``aligned_empty``). The sums are numpy's, not ``cv2.resize``'s, so that the fields do
+    not depend on the OpenCV release (docs/decisions.md, "The distance pyramid's halving")."""
     levels = [level0]
     for _ in range(1, num_levels):
         prev = levels[-1]
